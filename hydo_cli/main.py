@@ -1,0 +1,40 @@
+"""``hydo``: the typer app. One module per command; this file only composes them and maps known
+errors to one stderr line and a non-zero exit (set ``HYDO_DEBUG=1`` for the full traceback)."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import typer
+
+from hydo_cli import deploy, evaluate, export, train
+
+app = typer.Typer(
+    name="hydo",
+    help="Train, evaluate, export and deploy HyDo policies (Hybrid Diffusion Policy) for "
+    "non-prehensile manipulation: push and flip an object in a bin to a goal 6D pose.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_show_locals=False,
+)
+app.command("train", help=train.HELP)(train.train)
+app.command("eval", help=evaluate.HELP)(evaluate.evaluate)
+app.command("export", help=export.HELP)(export.export)
+app.add_typer(deploy.app, name="deploy")
+
+
+def main() -> None:
+    from hydo_cli.errors import known_errors
+
+    known = known_errors()
+    try:
+        app()  # standalone: click handles usage errors (exit 2), --help and typer.Exit itself
+    except known as e:  # one clear line, never a traceback, for user-facing failures
+        if os.environ.get("HYDO_DEBUG"):
+            raise
+        typer.secho(f"hydo: error: {e}", err=True, fg=typer.colors.RED)
+        sys.exit(1)
+
+if __name__ == "__main__":
+    main()

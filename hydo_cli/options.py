@@ -1,0 +1,31 @@
+"""Option types shared by several commands, so a flag has the same name, choices and help everywhere."""
+
+from __future__ import annotations
+
+from enum import Enum
+from typing import Annotated
+
+import typer
+
+
+class Goals(str, Enum):
+    planar = "planar"
+    sixd = "6d"
+
+
+class ObsSource(str, Enum):
+    mesh = "mesh"
+    render = "render"
+
+
+ObjectsOpt = Annotated[
+    str,
+    typer.Option(
+        "--objects",
+        help="Object set: train | unseen-instance | unseen-category | unseen | all | cube | an object name "
+        "| a folder of .obj/.stl meshes.",
+    ),
+]
+GoalsOpt = Annotated[Goals, typer.Option("--goals", help="Goal mode: planar (translation only) or 6d.")]
+ClutterOpt = Annotated[int, typer.Option("--clutter", help="Extra scene objects in the background: 0, 1, 2 or 5.")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed (episodes, goals, networks).")]

@@ -1,0 +1,123 @@
+"""Running episodes: shared by ``hydo eval``, ``hydo train``'s periodic evaluation and the benches.
+
+A *policy* here is a function from a list of observations (one per env) to a list of env actions
+``(index, motion)``, so torch agents can batch the decision and scripted baselines map over it.
+Episode ``i`` of a run with seed ``s`` always resets with seed ``s * 1_000_003 + i``: every policy
+evaluated with the same seed faces the same objects, start poses and goals.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+Policy = Callable[[list[dict[str, np.ndarray]]], list[tuple[int, np.ndarray]]]
+
+
+@dataclass
+class EpisodeResult:
+    object: str
+    success: bool
+    steps: int  # primitives taken
+    episode_return: float
+    final_distance: float  # mean goal-flow norm at the end, metres
+    rejected: int  # primitives refused (workspace or start collision)
+    failure: str  # "" on success, else "object_left_bin" | "timeout"
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def episode_seed(seed: int, i: int) -> int:
+    return seed * 1_000_003 + i
+
+
+def run_episodes(
+    envs: Sequence,
+    policy: Policy,
+    n_episodes: int,
+    seed: int = 0,
+    on_frame: Callable[[int, np.ndarray], None] | None = None,
+    on_episode: Callable[[EpisodeResult], None] | None = None,
+) -> list[EpisodeResult]:
+    """Run ``n_episodes`` spread over ``envs`` (stepped in lock-step, one batched decision per step).
+
+    ``on_frame(episode_index, rgb)`` is called after reset and every step when given (video).
+    Results come back in episode order.
+    """
+    results: dict[int, EpisodeResult] = {}
+    next_ep = 0
+    slots: list[dict | None] = [None] * len(envs)
+
+    def start(k: int) -> None:
+        nonlocal next_ep
+        if next_ep >= n_episodes:
+            slots[k] = None
+            return
+        obs, info = envs[k].reset(seed=episode_seed(seed, next_ep))
+        slots[k] = {"ep": next_ep, "obs": obs, "ret": 0.0, "rej": 0, "steps": 0, "object": info["object"]}
+        if on_frame is not None:
+            on_frame(next_ep, envs[k].render())
+        next_ep += 1
+
+    for k in range(len(envs)):
+        start(k)
+    while any(s is not None for s in slots):
+        active = [k for k, s in enumerate(slots) if s is not None]
+        actions = policy([slots[k]["obs"] for k in active])
+        for k, action in zip(active, actions, strict=True):
+            s = slots[k]
+            obs, reward, terminated, truncated, info = envs[k].step(action)
+            s["obs"], s["ret"], s["steps"] = obs, s["ret"] + reward, s["steps"] + 1
+            s["rej"] += int(info["rejected"])
+            if on_frame is not None:
+                on_frame(s["ep"], envs[k].render())
+            if terminated or truncated:
+                r = EpisodeResult(
+                    object=s["object"],
+                    success=info["success"],
+                    steps=s["steps"],
+                    episode_return=s["ret"],
+                    final_distance=info["distance"],
+                    rejected=s["rej"],
+                    failure="" if info["success"] else info["failure"],
+                )
+                results[s["ep"]] = r
+                if on_episode is not None:
+                    on_episode(r)
+                start(k)
+    return [results[i] for i in range(n_episodes)]
+
+
+def summarize(results: Sequence[EpisodeResult]) -> dict:
+    """Success rate, mean return, mean steps to success, failure reasons and a per-object breakdown."""
+    n = len(results)
+    succ = [r for r in results if r.success]
+    per_object: dict[str, list[bool]] = {}
+    for r in results:
+        per_object.setdefault(r.object, []).append(r.success)
+    failures: dict[str, int] = {}
+    for r in results:
+        if not r.success:
+            failures[r.failure] = failures.get(r.failure, 0) + 1
+    return {
+        "episodes": n,
+        "success_rate": len(succ) / n if n else 0.0,
+        "mean_return": float(np.mean([r.episode_return for r in results])) if n else 0.0,
+        "mean_steps_to_success": float(np.mean([r.steps for r in succ])) if succ else None,
+        "mean_final_distance_m": float(np.mean([r.final_distance for r in results])) if n else 0.0,
+        "rejected_primitives": int(sum(r.rejected for r in results)),
+        "failures": failures,
+        "per_object": {k: float(np.mean(v)) for k, v in sorted(per_object.items())},
+    }
+
+
+def baseline_policy(name: str, seed: int) -> Policy:
+    """``random`` or ``heuristic`` from ``sim.baselines`` as a batched policy with its own RNG."""
+    from sim.baselines import POLICIES
+
+    act = POLICIES[name]
+    rng = np.random.default_rng(seed)
+    return lambda observations: [act(o, rng) for o in observations]

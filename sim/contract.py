@@ -1,0 +1,123 @@
+"""The observation, reward and success contract: its one home.
+
+Training (``sim.env``), export (``models`` via ``hydo_cli.export``) and deploy (``robot``) all import
+these names; nothing else defines them. Pure numpy, no MuJoCo, no torch, so the torch-free deploy
+path can use it.
+
+Observation (one per decision), all float32, world frame, metres::
+
+    points   (N, 3)       object points first (N_obj), then background points (N_bg)
+    features (N, 4)       [is_object, goal_flow_x, goal_flow_y, goal_flow_z]
+    normals  (N_obj, 3)   outward unit normals of the object points (primitive only, not the network)
+
+``goal_flow = T_goal · T_obj⁻¹ · p − p`` for object points, 0 for background points.
+Reward ``r = −mean_i ‖goal_flow_i‖`` over object points; success when that mean is < 3 cm.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Bump when the meaning or layout of an observation changes: exports record it, loaders check it.
+OBS_CONTRACT_VERSION = 1
+
+FEATURE_DIM = 4  # [is_object, goal_flow_x, goal_flow_y, goal_flow_z]
+SUCCESS_THRESHOLD_M = 0.03  # mean goal-flow norm under which a goal counts as reached (metres)
+MAX_PRIMITIVES = 10  # primitives per episode before truncation
+
+#: Default point counts. Chosen by measurement (bench/learner.py): every gradient update is linear in
+#: N, and 128 + 128 keeps the planar task learnable while an update stays cheap on 2 CPU cores.
+#: HACMan uses 400 + 400. Each run and export records its own counts.
+DEFAULT_N_OBJ = 128
+DEFAULT_N_BG = 128
+
+
+def pose_matrix(pos: np.ndarray, quat_wxyz: np.ndarray) -> np.ndarray:
+    """Homogeneous transform (4, 4) from a position (3,) in metres and a unit quaternion (4,) wxyz."""
+    w, x, y, z = np.asarray(quat_wxyz, dtype=np.float64) / np.linalg.norm(quat_wxyz)
+    T = np.eye(4)
+    T[:3, :3] = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    T[:3, 3] = pos
+    return T
+
+
+def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Apply a (4, 4) transform to points (N, 3)."""
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def goal_flow(points_world: np.ndarray, T_obj: np.ndarray, T_goal: np.ndarray) -> np.ndarray:
+    """Per-point goal flow (N, 3) metres: where each object point must move to reach the goal pose.
+
+    ``points_world`` (N, 3) are object points in the world frame at the current pose ``T_obj``.
+    """
+    T_rel = T_goal @ np.linalg.inv(T_obj)  # current pose -> goal pose, applied to world points
+    return (transform_points(T_rel, points_world) - points_world).astype(np.float32)
+
+
+def mean_flow_distance(points_world: np.ndarray, T_obj: np.ndarray, T_goal: np.ndarray) -> float:
+    """Mean goal-flow norm in metres: the quantity the reward negates and success thresholds."""
+    return float(np.linalg.norm(goal_flow(points_world, T_obj, T_goal), axis=1).mean())
+
+
+def reward_and_success(points_world, T_obj, T_goal) -> tuple[float, bool, float]:
+    """``(reward, success, distance)`` for object points (N, 3) at pose ``T_obj``."""
+    d = mean_flow_distance(points_world, T_obj, T_goal)
+    return -d, d < SUCCESS_THRESHOLD_M, d
+
+
+def resample(n_have: int, n_want: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices that resample ``n_have`` items to exactly ``n_want`` (without replacement when it can)."""
+    if n_have <= 0:
+        raise ValueError("cannot resample an empty point set")
+    if n_have >= n_want:
+        return rng.choice(n_have, n_want, replace=False)
+    return np.concatenate([rng.permutation(n_have), rng.choice(n_have, n_want - n_have)])
+
+
+def build_observation(
+    obj_points: np.ndarray,
+    obj_normals: np.ndarray,
+    bg_points: np.ndarray,
+    T_obj: np.ndarray,
+    T_goal: np.ndarray,
+    n_obj: int,
+    n_bg: int,
+    rng: np.random.Generator,
+) -> dict[str, np.ndarray]:
+    """Assemble one observation from segmented clouds (any sizes) at fixed counts ``n_obj + n_bg``.
+
+    obj_points (M, 3), obj_normals (M, 3): visible object points in the world frame at pose
+    ``T_obj`` (4, 4); bg_points (L, 3): background (bin, clutter). Random resampling fixes the counts.
+    Used by the simulator (mesh and rendered sources) and by deploy alike.
+    """
+    io = resample(len(obj_points), n_obj, rng)
+    ib = resample(len(bg_points), n_bg, rng)
+    p_obj = obj_points[io].astype(np.float32)
+    points = np.concatenate([p_obj, bg_points[ib].astype(np.float32)], axis=0)
+    features = np.zeros((n_obj + n_bg, FEATURE_DIM), dtype=np.float32)
+    features[:n_obj, 0] = 1.0
+    features[:n_obj, 1:] = goal_flow(p_obj, T_obj, T_goal)
+    return {
+        "points": points,
+        "features": features,
+        "normals": obj_normals[io].astype(np.float32),
+    }
+
+
+def validate_observation(obs: dict[str, np.ndarray], n_obj: int, n_bg: int) -> None:
+    """Raise ``ValueError`` naming the tensor when an observation breaks the contract."""
+    n = n_obj + n_bg
+    want = {"points": (n, 3), "features": (n, FEATURE_DIM), "normals": (n_obj, 3)}
+    for name, shape in want.items():
+        if name not in obs:
+            raise ValueError(f"observation is missing '{name}'")
+        a = np.asarray(obs[name])
+        if a.shape != shape:
+            raise ValueError(f"observation '{name}' has shape {a.shape}, expected {shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"observation '{name}' contains NaN or inf")

@@ -1,0 +1,223 @@
+"""``hydo/Bin-v0``: HACMan's object pose alignment task as a gymnasium env.
+
+Observation
+    ``Dict(points (N, 3), features (N, 4), normals (N_obj, 3))`` float32, the layout of
+    ``sim.contract`` (object points first, then background; features ``[is_object, goal_flow]``).
+Action
+    ``Tuple(Discrete(N_obj), Box(-1, 1, (3,)))``: the index of the contact point among the object
+    points of the current observation, and the motion parameter of the push primitive
+    (``sim.primitive``: three pushes of ``0.03 · motion`` metres).
+Reward
+    ``−mean_i ‖goal_flow_i‖`` (metres) over the object's full surface samples at the new pose;
+    ``info["reward_flow"]`` holds the same term (the reward is the sum of the ``reward_*`` terms).
+Episode end
+    terminated on success (mean flow < 3 cm) or when the object leaves the bin; truncated after
+    ``MAX_PRIMITIVES`` (10) primitives. A refused primitive (a waypoint outside the workspace, or a
+    start pose in collision) leaves the scene unchanged, counts as a step and is reported in
+    ``info["rejected"]`` / ``info["reject_reason"]``.
+Arguments (``gymnasium.make("hydo/Bin-v0", ...)``)
+    ``objects`` (split name, object name or mesh folder), ``goals`` (``planar`` | ``6d``), ``obs``
+    (``mesh`` | ``render``), ``clutter`` (0, 1, 2 or 5 extra objects in the background cloud),
+    ``n_obj``, ``n_bg`` (point counts), ``max_steps``.
+Starting state
+    A random stable pose of a random object, with random yaw and bin position; ``planar`` goals
+    translate it (same orientation), ``6d`` goals pick another random stable pose, yaw and position.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from sim.contract import (
+    DEFAULT_N_BG,
+    DEFAULT_N_OBJ,
+    FEATURE_DIM,
+    MAX_PRIMITIVES,
+    build_observation,
+    pose_matrix,
+    reward_and_success,
+    transform_points,
+)
+from sim.goals import GOAL_MODES, footprint_radius, sample_placement, stable_poses
+from sim.objects import ObjectAsset, load_objects
+from sim.observe import MeshObserver
+from sim.primitive import SIM_WORKSPACE, PrimitiveRejected, check_plan, primitive_waypoints
+from sim.scene import BinScene
+
+CLUTTER_CHOICES = (0, 1, 2, 5)
+MIN_GOAL_DISTANCE_M = 0.05  # a goal must start further than the success threshold (with margin)
+
+
+class BinEnv(gym.Env):
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
+
+    def __init__(
+        self,
+        objects: str | tuple[ObjectAsset, ...] = "train",
+        goals: str = "planar",
+        obs: str = "mesh",
+        clutter: int = 0,
+        n_obj: int = DEFAULT_N_OBJ,
+        n_bg: int = DEFAULT_N_BG,
+        max_steps: int = MAX_PRIMITIVES,
+        render_mode: str | None = None,
+    ):
+        if goals not in GOAL_MODES:
+            raise ValueError(f"`goals` must be one of {list(GOAL_MODES)}. Got {goals!r}.")
+        if clutter not in CLUTTER_CHOICES:
+            raise ValueError(f"`clutter` must be one of {list(CLUTTER_CHOICES)}. Got {clutter!r}.")
+        if obs not in ("mesh", "render"):
+            raise ValueError(f"`obs` must be one of ['mesh', 'render']. Got {obs!r}.")
+        self.assets = load_objects(objects) if isinstance(objects, str) else tuple(objects)
+        if not self.assets:
+            raise ValueError("no objects to train or evaluate on")
+        self.goal_mode, self.n_clutter = goals, clutter
+        self.n_obj, self.n_bg, self.max_steps = n_obj, n_bg, max_steps
+        self.render_mode = render_mode
+        self.obs_source = obs
+        self._poses = {a.name: stable_poses(a) for a in self.assets}
+        self._clutter_pool = load_objects("train") if clutter else ()
+        if obs == "render":
+            from sim.render import RenderObserver  # EGL is only touched when asked for
+
+            self.observer = RenderObserver()
+        else:
+            self.observer = MeshObserver()
+        n = n_obj + n_bg
+        self.observation_space = spaces.Dict(
+            {
+                # metres; bounds far outside the bin (an object that leaves it ends the episode)
+                "points": spaces.Box(-10.0, 10.0, (n, 3), np.float32),
+                "features": spaces.Box(-20.0, 20.0, (n, FEATURE_DIM), np.float32),
+                "normals": spaces.Box(-1.0, 1.0, (n_obj, 3), np.float32),
+            }
+        )
+        self.action_space = spaces.Tuple((spaces.Discrete(n_obj), spaces.Box(-1.0, 1.0, (3,), np.float32)))
+        self._scenes: dict[tuple[str, ...], BinScene] = {}
+        self.scene: BinScene | None = None
+        self._obs: dict[str, np.ndarray] | None = None
+        self._renderer = None
+
+    # --- helpers ---------------------------------------------------------------------------------
+    def _get_scene(self, asset: ObjectAsset, clutter: tuple[ObjectAsset, ...]) -> BinScene:
+        key = (asset.name, *(c.name for c in clutter))
+        if key not in self._scenes:
+            if len(self._scenes) > 64:  # clutter makes many combinations: keep memory bounded
+                self._scenes.clear()
+            self._scenes[key] = BinScene(asset, clutter)
+        return self._scenes[key]
+
+    def _observe(self) -> dict[str, np.ndarray]:
+        obj_p, obj_n, bg = self.observer.segmented_clouds(self.scene)
+        obs = build_observation(obj_p, obj_n, bg, self.scene.object_T(), self.T_goal, self.n_obj, self.n_bg, self.np_random)
+        self._obs = obs
+        return obs
+
+    def _evaluate(self) -> tuple[float, bool, float]:
+        pts = transform_points(self.scene.object_T(), self.scene.asset.surface_points)
+        return reward_and_success(pts, self.scene.object_T(), self.T_goal)
+
+    def _place_clutter(self, rng, obj_pos, obj_r) -> None:
+        placed = [(obj_pos[:2], obj_r)]
+        for i, c in enumerate(self.scene.clutter):
+            poses = stable_poses(c)
+            for _ in range(50):
+                pos, quat = sample_placement(c, poses[rng.integers(len(poses))], rng)
+                r = footprint_radius(c, quat)
+                if all(np.linalg.norm(pos[:2] - p) > r + q + 0.01 for p, q in placed):
+                    break
+            placed.append((pos[:2], r))
+            self.scene.set_object_pose(pos, quat, body=f"clutter{i}")
+
+    # --- gymnasium API ---------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        rng = self.np_random
+        options = options or {}
+        if "object" in options:
+            by_name = {a.name: a for a in self.assets}
+            asset = by_name[options["object"]]
+        else:
+            asset = self.assets[rng.integers(len(self.assets))]
+        clutter = tuple(self._clutter_pool[rng.integers(len(self._clutter_pool))] for _ in range(self.n_clutter))
+        self.scene = self._get_scene(asset, clutter)
+        self.scene.reset()  # full reset: MuJoCo's warm-start state must not leak between episodes
+        poses = self._poses[asset.name]
+        for _ in range(100):
+            start = poses[rng.integers(len(poses))]
+            yaw = rng.uniform(-np.pi, np.pi)
+            pos, quat = sample_placement(asset, start, rng, yaw=yaw)
+            if self.goal_mode == "planar":  # same stable pose and yaw: a pure translation
+                gpos, gquat = sample_placement(asset, start, rng, yaw=yaw)
+            else:
+                gpos, gquat = sample_placement(asset, poses[rng.integers(len(poses))], rng)
+            self.T_goal = pose_matrix(gpos, gquat)
+            d = np.linalg.norm(
+                transform_points(self.T_goal, asset.surface_points)
+                - transform_points(pose_matrix(pos, quat), asset.surface_points),
+                axis=1,
+            ).mean()
+            if d > MIN_GOAL_DISTANCE_M:
+                break
+        self.scene.set_object_pose(pos, quat)
+        if clutter:
+            self._place_clutter(rng, pos, footprint_radius(asset, quat))
+        self.scene.set_goal_ghost(gpos, gquat)
+        self.scene.settle(max_s=0.5)
+        self.goal_pose = (gpos, gquat)
+        self._steps = 0
+        _, _, dist = self._evaluate()
+        return self._observe(), {"object": asset.name, "distance": dist, "success": False}
+
+    def step(self, action):
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        index, motion = action
+        index = int(index)
+        motion = np.asarray(motion, dtype=np.float64).reshape(3)
+        if not 0 <= index < self.n_obj:
+            raise ValueError(f"action index must be in [0, {self.n_obj}), got {index}")
+        if not np.all(np.isfinite(motion)):
+            raise ValueError("action motion contains NaN or inf")
+        point = self._obs["points"][index]
+        normal = self._obs["normals"][index]
+        waypoints = primitive_waypoints(point, normal, motion)
+        rejected, reason, steps = False, "", 0
+        try:
+            check_plan(waypoints, SIM_WORKSPACE)
+        except PrimitiveRejected as e:
+            rejected, reason = True, str(e)
+        if not rejected:
+            result = self.scene.execute_primitive(waypoints)
+            rejected, reason, steps = not result.executed, result.reason, result.physics_steps
+        self._steps += 1
+        reward, success, dist = self._evaluate()
+        left_bin = not self.scene.object_in_bin()
+        terminated = bool(success or left_bin)
+        truncated = bool(not terminated and self._steps >= self.max_steps)
+        info = {
+            "reward_flow": reward,
+            "distance": dist,
+            "success": bool(success),
+            "rejected": rejected,
+            "reject_reason": reason,
+            "failure": "object_left_bin" if left_bin else ("timeout" if truncated else ""),
+            "object": self.scene.asset.name,
+            "physics_steps": steps,
+            "waypoints": waypoints,
+        }
+        return self._observe(), float(reward), terminated, truncated, info
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        from sim.render import render_rgb
+
+        return render_rgb(self)
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

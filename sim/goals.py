@@ -1,0 +1,183 @@
+"""Stable poses by drop-and-settle, and goal sampling (HACMan's ``planar`` and ``6d`` modes).
+
+A stable pose is stored as ``(z, qw, qx, qy, qz)``: the object origin's height above the bin floor
+(metres) and its orientation. Any yaw about the world z axis and any x, y inside the bin keep it
+stable, so goals re-sample both.
+
+Built-in objects use the shipped ``assets/stable_poses.npz`` (regenerate with
+``python -m sim.goals``); user meshes are computed on first use (with a progress bar) and cached under
+``$HYDO_CACHE`` (default ``~/.cache/hydo``). Both caches are keyed by a hash of the object's geometry,
+so a changed mesh never reuses stale poses.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from sim.objects import ObjectAsset, builtin_objects
+from sim.primitive import BIN_INNER_SIZE_M
+
+N_STABLE_POSES = 100
+SHIPPED_FILE = Path(__file__).parent / "assets" / "stable_poses.npz"
+DROP_HEIGHT_M = 0.15  # object origin's drop height above the floor
+STABLE_MAX_MOVE_M = 0.005  # a stable pose moves less than this ...
+STABLE_MAX_TURN_RAD = np.deg2rad(3.0)  # ... and turns less than this over 1 s
+WALL_MARGIN_M = 0.02  # keep sampled object footprints this far from the bin walls
+#: Start and goal positions of the object's origin are drawn from this central region (half-sizes,
+#: metres), as HACMan drops objects above the bin's centre: the Panda palm is 20 cm wide, so a hand
+#: between an object and a wall needs room that the outer 10 cm of the bin does not have.
+PLACEMENT_HALF_M = np.array([0.12, 0.14])
+GOAL_MODES = ("planar", "6d")
+
+
+def geometry_hash(asset: ObjectAsset) -> str:
+    """Short sha256 of an object's collision parts: the key of every stable-pose cache."""
+    h = hashlib.sha256()
+    for p in asset.parts:
+        h.update(np.ascontiguousarray(p, dtype=np.float64).tobytes())
+    return h.hexdigest()[:16]
+
+
+def random_quaternion(rng: np.random.Generator) -> np.ndarray:
+    """Uniform random unit quaternion (4,) wxyz (Shoemake)."""
+    u1, u2, u3 = rng.random(3)
+    a, b = np.sqrt(1 - u1), np.sqrt(u1)
+    return np.array(
+        [b * np.cos(2 * np.pi * u3), a * np.sin(2 * np.pi * u2), a * np.cos(2 * np.pi * u2), b * np.sin(2 * np.pi * u3)]
+    )
+
+
+def quat_mul(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """Hamilton product q1 ⊗ q2 of wxyz quaternions."""
+    w1, x1, y1, z1 = q1
+    w2, x2, y2, z2 = q2
+    return np.array(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ]
+    )
+
+
+def quat_angle(q1: np.ndarray, q2: np.ndarray) -> float:
+    """Rotation angle (rad) between two unit quaternions."""
+    return float(2 * np.arccos(np.clip(abs(np.dot(q1, q2)), -1.0, 1.0)))
+
+
+def yaw_quat(yaw: float) -> np.ndarray:
+    return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+
+
+def compute_stable_poses(asset: ObjectAsset, n: int = N_STABLE_POSES, seed: int = 0, progress=None) -> np.ndarray:
+    """Drop ``asset`` from random orientations and keep ``n`` rest poses that stay put for 1 s.
+
+    Returns ``(n, 5)`` float64 rows ``(z, qw, qx, qy, qz)``. ``progress(i, n)`` is called per pose.
+    """
+    import mujoco
+
+    from sim.scene import BinScene  # local: mujoco is only needed to compute, not to load
+
+    scene = BinScene(asset)
+    rng = np.random.default_rng(seed)
+    dt = scene.model.opt.timestep
+    out: list[np.ndarray] = []
+    attempts = 0
+    while len(out) < n:
+        attempts += 1
+        if attempts > 5 * n:
+            raise RuntimeError(f"{asset.name}: only {len(out)} of {n} drops came to a stable rest")
+        scene.set_object_pose(np.array([0.0, 0.0, DROP_HEIGHT_M]), random_quaternion(rng))
+        scene.settle(max_s=3.0)
+        pos, quat = scene.object_pose()
+        # Verify: restart exactly at that pose with zero velocity and watch it for 1 s.
+        scene.set_object_pose(pos, quat)
+        mujoco.mj_step(scene.model, scene.data, nstep=int(round(1.0 / dt)))
+        pos1, quat1 = scene.object_pose()
+        if np.linalg.norm(pos1 - pos) < STABLE_MAX_MOVE_M and quat_angle(quat, quat1) < STABLE_MAX_TURN_RAD:
+            out.append(np.concatenate([[pos[2]], quat]))
+            if progress is not None:
+                progress(len(out), n)
+    return np.stack(out)
+
+
+def _cache_dir() -> Path:
+    return Path(os.environ.get("HYDO_CACHE", Path.home() / ".cache" / "hydo")) / "stable_poses"
+
+
+def _atomic_savez(path: Path, **arrays) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez_compressed(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; the shipped file must be world-readable
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+_SHIPPED: dict[str, np.ndarray] | None = None
+
+
+def stable_poses(asset: ObjectAsset) -> np.ndarray:
+    """The ``(n, 5)`` stable poses of ``asset``: shipped, cached, or computed now (with progress)."""
+    global _SHIPPED
+    key = f"{asset.name}-{geometry_hash(asset)}"
+    if _SHIPPED is None:
+        _SHIPPED = dict(np.load(SHIPPED_FILE)) if SHIPPED_FILE.exists() else {}
+    if key in _SHIPPED:
+        return _SHIPPED[key]
+    path = _cache_dir() / f"{key}.npz"
+    if path.exists():
+        return np.load(path)["poses"]
+    from rich.progress import Progress
+
+    with Progress(transient=True) as bar:
+        task = bar.add_task(f"stable poses of {asset.name}", total=N_STABLE_POSES)
+        poses = compute_stable_poses(asset, progress=lambda i, n: bar.update(task, completed=i))
+    _atomic_savez(path, poses=poses)
+    return poses
+
+
+def footprint_radius(asset: ObjectAsset, quat_wxyz: np.ndarray) -> float:
+    """Largest horizontal distance (m) of the object's surface from its origin in orientation ``quat``."""
+    from sim.contract import pose_matrix
+
+    R = pose_matrix(np.zeros(3), quat_wxyz)[:3, :3]
+    return float(np.linalg.norm((asset.surface_points @ R.T)[:, :2], axis=1).max())
+
+
+def sample_placement(asset: ObjectAsset, pose: np.ndarray, rng: np.random.Generator, yaw: float | None = None):
+    """Place stable ``pose`` (5,) at a random yaw and bin position: returns ``(pos (3,), quat (4,))``."""
+    yaw = rng.uniform(-np.pi, np.pi) if yaw is None else yaw
+    quat = quat_mul(yaw_quat(yaw), pose[1:5])
+    r = footprint_radius(asset, quat)
+    half = np.minimum(np.maximum(BIN_INNER_SIZE_M[:2] / 2 - r - WALL_MARGIN_M, 0.0), PLACEMENT_HALF_M)
+    xy = rng.uniform(-half, half)
+    return np.array([xy[0], xy[1], pose[0]]), quat
+
+
+def main() -> None:
+    """Regenerate the shipped stable poses of every built-in object (deterministic; ~1-2 min)."""
+    from rich.progress import track
+
+    arrays = {}
+    for asset in track(builtin_objects(), description="stable poses"):
+        arrays[f"{asset.name}-{geometry_hash(asset)}"] = compute_stable_poses(asset)
+    _atomic_savez(SHIPPED_FILE, **arrays)
+    print(f"wrote {SHIPPED_FILE} ({len(arrays)} objects)")
+
+
+if __name__ == "__main__":
+    main()

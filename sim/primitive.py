@@ -1,0 +1,110 @@
+"""The push primitive (HACMan's poke) and the workspace gate: their one home.
+
+Pure numpy. The simulator, the MuJoCo twin and the real robot all take their waypoints from
+``primitive_waypoints`` and refuse plans with ``check_plan``, so a primitive means the same thing in
+training and on the arm.
+
+Geometry (fingertip positions, world/base frame, metres; gripper pointing down, fingers closed)::
+
+    w0 = p + 0.04 n          pre-contact (teleported to in training; approached from above on a robot)
+    w1 = p + 0.02 n
+    w2 = p                   contact
+    w3..w5 = w2 + k·0.03·m   three pushes of 3 cm · motion, k = 1, 2, 3
+    w6 = w5 + [0, 0, 0.06]   retract straight up
+
+Every waypoint's height is clamped to ≥ floor + 5 mm *before* the workspace check (part of the
+primitive's definition: a push with a downward component slides along the floor). After clamping, a
+plan with any waypoint outside the workspace box is refused, never clipped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+PRE_CONTACT_OFFSET_M = 0.04  # start this far out along the surface normal
+APPROACH_OFFSET_M = 0.02  # second waypoint along the normal
+PUSH_STEP_M = 0.03  # each of the three pushes moves 3 cm × motion component
+N_PUSH_STEPS = 3
+RETRACT_HEIGHT_M = 0.06  # straight-up retract after the last push
+FLOOR_CLEARANCE_M = 0.005  # fingertip never commanded lower than this above the bin floor
+N_WAYPOINTS = 3 + N_PUSH_STEPS + 1
+PUSH_SEGMENTS = tuple(range(3, 3 + N_PUSH_STEPS))  # waypoint indices reached by pushing moves
+
+
+# Bin of HACMan's scene: inner size 0.45 x 0.54 x 0.107 m, floor top at z = 0, centred at x = y = 0.
+BIN_INNER_SIZE_M = np.array([0.45, 0.54, 0.107])
+BIN_FLOOR_Z = 0.0
+
+
+class PrimitiveRejected(ValueError):
+    """A plan that must not be executed; the message names waypoint, axis and bound."""
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """Axis-aligned box (metres) every fingertip waypoint must lie in, and the bin floor height."""
+
+    low: tuple[float, float, float]
+    high: tuple[float, float, float]
+    floor_z: float = BIN_FLOOR_Z
+
+    def __post_init__(self):
+        lo, hi = np.asarray(self.low, float), np.asarray(self.high, float)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi > lo):
+            raise ValueError(f"workspace box must have low < high on x, y, z; got {self.low}, {self.high}")
+        if not lo[2] <= self.floor_z + FLOOR_CLEARANCE_M:
+            raise ValueError("workspace low z must not be above floor + clearance")
+
+
+#: The simulated cell's workspace: the bin interior shrunk by 1.2 cm at the walls (half the closed
+#: fingers' width plus margin) and up to 0.25 m above the floor.
+SIM_WORKSPACE = Workspace(
+    low=(-0.225 + 0.012, -0.27 + 0.012, BIN_FLOOR_Z),
+    high=(0.225 - 0.012, 0.27 - 0.012, BIN_FLOOR_Z + 0.25),
+)
+
+
+def primitive_waypoints(
+    point: np.ndarray, normal: np.ndarray, motion: np.ndarray, floor_z: float = BIN_FLOOR_Z
+) -> np.ndarray:
+    """Fingertip waypoints (N_WAYPOINTS, 3) for contact ``point`` (3,), unit ``normal`` (3,) and
+    ``motion`` (3,) in [-1, 1] (clipped to that range: it is the policy's squashed output)."""
+    p = np.asarray(point, dtype=np.float64)
+    n = np.asarray(normal, dtype=np.float64)
+    n = n / max(np.linalg.norm(n), 1e-9)
+    m = np.clip(np.asarray(motion, dtype=np.float64), -1.0, 1.0)
+    w = np.empty((N_WAYPOINTS, 3))
+    w[0] = p + PRE_CONTACT_OFFSET_M * n
+    w[1] = p + APPROACH_OFFSET_M * n
+    w[2] = p
+    for k in range(1, N_PUSH_STEPS + 1):
+        w[2 + k] = p + k * PUSH_STEP_M * m
+    w[:, 2] = np.maximum(w[:, 2], floor_z + FLOOR_CLEARANCE_M)
+    w[-1] = w[-2] + [0.0, 0.0, RETRACT_HEIGHT_M]
+    return w
+
+
+def check_plan(waypoints: np.ndarray, workspace: Workspace = SIM_WORKSPACE) -> None:
+    """Raise ``PrimitiveRejected`` unless every waypoint is finite and inside ``workspace``.
+
+    Segments between waypoints are straight lines, so a box containing every waypoint contains every
+    segment too.
+    """
+    w = np.asarray(waypoints, dtype=np.float64)
+    if w.ndim != 2 or w.shape[1] != 3:
+        raise PrimitiveRejected(f"waypoints must have shape (K, 3), got {w.shape}")
+    if not np.all(np.isfinite(w)):
+        raise PrimitiveRejected("waypoints contain NaN or inf")
+    lo, hi = np.asarray(workspace.low), np.asarray(workspace.high)
+    for i, wp in enumerate(w):
+        for axis, name in enumerate("xyz"):
+            if wp[axis] < lo[axis] - 1e-9:
+                raise PrimitiveRejected(
+                    f"waypoint {i} {name}={wp[axis]:.3f} m is below the workspace bound {lo[axis]:.3f} m"
+                )
+            if wp[axis] > hi[axis] + 1e-9:
+                raise PrimitiveRejected(
+                    f"waypoint {i} {name}={wp[axis]:.3f} m is above the workspace bound {hi[axis]:.3f} m"
+                )

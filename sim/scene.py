@@ -1,0 +1,292 @@
+"""The native MuJoCo bin scene: bin + floating Panda hand + one object (+ clutter), and the primitive's
+execution in it.
+
+``assets/scene.xml`` includes ``bin.xml`` and ``hand.xml``; this module adds the object as a free body
+of convex mesh parts, optional clutter bodies, a translucent goal ghost (a mocap body, group 4,
+never collides) and, when ``dm-robotics-panda`` is installed, the Panda hand meshes as visuals.
+
+Frames and units: world frame, metres, quaternions wxyz. The bin floor's top is z = 0.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.metadata
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from sim.contract import pose_matrix
+from sim.objects import ObjectAsset
+from sim.primitive import BIN_INNER_SIZE_M, PUSH_SEGMENTS
+
+ASSETS = Path(__file__).parent / "assets"
+PARK_POS = np.array([0.0, 0.0, 1.5])  # hand parked far above the bin, outside every camera's view
+
+OBJECT_DENSITY = 400.0  # kg/m^3, light wood/plastic: a 10 cm object weighs 0.1-0.4 kg
+OBJECT_FRICTION = (0.5, 0.005, 0.0001)  # sliding, torsional, rolling
+APPROACH_SPEED = 0.2  # m/s, fingertip speed from pre-contact to contact
+PUSH_SPEED = 0.15  # m/s, fingertip speed while pushing
+TRACK_STEPS = 10  # physics steps (50 ms) to let the actuators converge after each push target
+START_PENETRATION_M = 0.003  # a teleported start deeper than this inside something is refused
+SETTLE_MAX_S = 1.5  # cap on waiting for the object to come to rest
+SETTLE_LIN_VEL = 0.005  # m/s: at rest below this ...
+SETTLE_ANG_VEL = 0.05  # rad/s: ... and this
+
+
+@dataclass
+class PrimitiveResult:
+    """What happened when a primitive ran: ``executed`` False means the scene was left unchanged."""
+
+    executed: bool
+    reason: str = ""  # why it was not executed
+    max_contact_force: float = 0.0  # N, largest hand contact normal force seen while pushing
+    physics_steps: int = 0
+
+
+@functools.cache
+def _panda_hand_meshes() -> tuple[str, str] | None:
+    """Paths of dm-robotics-panda's hand.obj and finger.obj, or None when it is not installed."""
+    try:
+        root = importlib.metadata.distribution("dm-robotics-panda").locate_file(
+            "dm_robotics/panda/assets/panda"
+        )
+    except importlib.metadata.PackageNotFoundError:
+        return None
+    hand, finger = Path(root) / "hand.obj", Path(root) / "finger.obj"
+    return (str(hand), str(finger)) if hand.exists() and finger.exists() else None
+
+
+def _add_hand_visuals(spec: mujoco.MjSpec) -> None:
+    meshes = _panda_hand_meshes()
+    if meshes is None or os.environ.get("HYDO_NO_HAND_MESH"):
+        return
+    hand = spec.body("hand")
+    spec.add_mesh(name="panda_hand_mesh", file=meshes[0])
+    spec.add_mesh(name="panda_finger_mesh", file=meshes[1])
+    rgba = [0.95, 0.95, 0.95, 1.0]
+    # Wrist frame: 0.1124 m above the fingertip, rotated 180 deg about x so the fingers point down.
+    flip = [0.0, 1.0, 0.0, 0.0]
+    vis = dict(type=mujoco.mjtGeom.mjGEOM_MESH, contype=0, conaffinity=0, group=2, rgba=rgba)
+    hand.add_geom(name="hand_visual", meshname="panda_hand_mesh", pos=[0, 0, 0.1124], quat=flip, **vis)
+    # Finger meshes at 0.0584 m below the wrist; the left one is turned 180 deg about the wrist z axis.
+    hand.add_geom(name="finger_r_visual", meshname="panda_finger_mesh", pos=[0, 0, 0.054], quat=flip, **vis)
+    hand.add_geom(
+        name="finger_l_visual", meshname="panda_finger_mesh", pos=[0, 0, 0.054], quat=[0, 0, 1, 0], **vis
+    )
+
+
+def _add_object_body(spec, prefix: str, asset: ObjectAsset, rgba, mocap=False) -> None:
+    """Add ``asset`` as a body named ``prefix`` with one mesh geom per convex part."""
+    body = spec.worldbody.add_body(name=prefix, pos=[0, 0, -1.0], mocap=mocap)
+    if not mocap:
+        body.add_freejoint(name=f"{prefix}_joint")
+    for k, verts in enumerate(asset.parts):
+        mesh = f"{prefix}_part{k}"
+        spec.add_mesh(name=mesh, uservert=np.asarray(verts, dtype=np.float64).ravel().tolist())
+        if mocap:  # the goal ghost: drawn (group 4) but never collides and has no mass
+            body.add_geom(
+                name=f"{prefix}_geom{k}",
+                type=mujoco.mjtGeom.mjGEOM_MESH,
+                meshname=mesh,
+                contype=0,
+                conaffinity=0,
+                group=4,
+                rgba=rgba,
+            )
+        else:
+            body.add_geom(
+                name=f"{prefix}_geom{k}",
+                type=mujoco.mjtGeom.mjGEOM_MESH,
+                meshname=mesh,
+                density=OBJECT_DENSITY,
+                friction=list(OBJECT_FRICTION),
+                rgba=rgba,
+                group=0,
+            )
+
+
+def build_model(asset: ObjectAsset, clutter: tuple[ObjectAsset, ...] = ()) -> mujoco.MjModel:
+    """Compile bin + hand + ``asset`` (body ``object``) + clutter (bodies ``clutter{i}``) + goal ghost."""
+    spec = mujoco.MjSpec.from_file(str(ASSETS / "scene.xml"))
+    _add_hand_visuals(spec)
+    _add_object_body(spec, "object", asset, rgba=[0.85, 0.35, 0.2, 1.0])
+    for i, c in enumerate(clutter):
+        _add_object_body(spec, f"clutter{i}", c, rgba=[0.35, 0.25, 0.15, 1.0])
+    _add_object_body(spec, "goal", asset, rgba=[0.2, 0.8, 0.3, 0.35], mocap=True)
+    return spec.compile()
+
+
+class BinScene:
+    """A compiled scene with named accessors and the primitive executor.
+
+    Used by the gymnasium env (training, eval), goal generation and the deploy twin's object.
+    """
+
+    def __init__(self, asset: ObjectAsset, clutter: tuple[ObjectAsset, ...] = ()):
+        self.asset = asset
+        self.clutter = clutter
+        self.model = build_model(asset, clutter)
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self.hand_qadr = np.array([m.jnt_qposadr[m.joint(f"hand_{a}").id] for a in "xyz"])
+        self.hand_dadr = np.array([m.jnt_dofadr[m.joint(f"hand_{a}").id] for a in "xyz"])
+        self.obj_qadr = m.jnt_qposadr[m.joint("object_joint").id]
+        self.obj_dadr = m.jnt_dofadr[m.joint("object_joint").id]
+        self.obj_body = m.body("object").id
+        self.clutter_qadr = [m.jnt_qposadr[m.joint(f"clutter{i}_joint").id] for i in range(len(clutter))]
+        self.goal_mocap = m.body_mocapid[m.body("goal").id]
+        hand_body = m.body("hand").id
+        self.hand_geoms = np.flatnonzero(m.geom_bodyid == hand_body)
+        self.reset()
+
+    # --- state accessors -------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Reset all simulation state (incl. solver warm-start, so episodes replay exactly)."""
+        mujoco.mj_resetData(self.model, self.data)
+        self.reset_hand()
+
+    def reset_hand(self) -> None:
+        """Park the hand (keyframe ``home``) without touching the rest of the state."""
+        d = self.data
+        d.qpos[self.hand_qadr] = PARK_POS
+        d.qvel[self.hand_dadr] = 0.0
+        d.ctrl[:] = PARK_POS
+        mujoco.mj_forward(self.model, d)
+
+    def set_object_pose(self, pos: np.ndarray, quat_wxyz: np.ndarray, body: str = "object") -> None:
+        adr = self.obj_qadr if body == "object" else self.clutter_qadr[int(body.removeprefix("clutter"))]
+        dadr = self.model.jnt_dofadr[self.model.joint(f"{body}_joint").id]
+        self.data.qpos[adr : adr + 3] = pos
+        self.data.qpos[adr + 3 : adr + 7] = np.asarray(quat_wxyz) / np.linalg.norm(quat_wxyz)
+        self.data.qvel[dadr : dadr + 6] = 0.0
+        mujoco.mj_forward(self.model, self.data)
+
+    def object_pose(self, body: str = "object") -> tuple[np.ndarray, np.ndarray]:
+        """``(pos (3,), quat (4,) wxyz)`` of a free body, copies."""
+        adr = self.obj_qadr if body == "object" else self.clutter_qadr[int(body.removeprefix("clutter"))]
+        q = self.data.qpos[adr : adr + 7]
+        return q[:3].copy(), q[3:7].copy()
+
+    def object_T(self, body: str = "object") -> np.ndarray:
+        return pose_matrix(*self.object_pose(body))
+
+    def set_goal_ghost(self, pos: np.ndarray, quat_wxyz: np.ndarray) -> None:
+        self.data.mocap_pos[self.goal_mocap] = pos
+        self.data.mocap_quat[self.goal_mocap] = quat_wxyz
+
+    def object_speed(self) -> tuple[float, float]:
+        """``(linear m/s, angular rad/s)`` of the object."""
+        v = self.data.qvel[self.obj_dadr : self.obj_dadr + 6]
+        return float(np.linalg.norm(v[:3])), float(np.linalg.norm(v[3:]))
+
+    def object_in_bin(self) -> bool:
+        """False once the object's origin has left the bin's inner volume (with a 2 cm margin)."""
+        pos, _ = self.object_pose()
+        half = BIN_INNER_SIZE_M[:2] / 2 + 0.02
+        return bool(np.all(np.abs(pos[:2]) < half) and -0.02 < pos[2] < 0.35)
+
+    def get_state(self) -> np.ndarray:
+        return np.concatenate([self.data.qpos, self.data.qvel, self.data.ctrl, [self.data.time]])
+
+    def set_state(self, state: np.ndarray) -> None:
+        m = self.model
+        self.data.qpos[:] = state[: m.nq]
+        self.data.qvel[:] = state[m.nq : m.nq + m.nv]
+        self.data.ctrl[:] = state[m.nq + m.nv : m.nq + m.nv + m.nu]
+        self.data.time = state[-1]
+        mujoco.mj_forward(m, self.data)
+
+    # --- physics ---------------------------------------------------------------------------------
+    def settle(self, max_s: float = SETTLE_MAX_S, chunk: int = 5) -> int:
+        """Step until every free body is at rest (or ``max_s``); returns physics steps taken.
+
+        Faster than HACMan's fixed 2 s wait: most pushes leave the object at rest within 0.2 s.
+        """
+        m, d = self.model, self.data
+        n_max = int(max_s / m.opt.timestep)
+        steps = 0
+        calm = 0
+        free_dofs = np.concatenate(
+            [np.arange(m.jnt_dofadr[j], m.jnt_dofadr[j] + 6) for j in np.flatnonzero(m.jnt_type == 0)]
+        )
+        while steps < n_max:
+            mujoco.mj_step(m, d, nstep=chunk)
+            steps += chunk
+            v = d.qvel[free_dofs].reshape(-1, 6)
+            if np.all(np.linalg.norm(v[:, :3], axis=1) < SETTLE_LIN_VEL) and np.all(
+                np.linalg.norm(v[:, 3:], axis=1) < SETTLE_ANG_VEL
+            ):
+                calm += 1
+                if calm >= 2:
+                    break
+            else:
+                calm = 0
+        return steps
+
+    def _hand_penetration(self) -> float:
+        """Deepest penetration (m, >= 0) of any hand geom into anything."""
+        d = self.data
+        deepest = 0.0
+        for c in d.contact[: d.ncon]:
+            if c.geom1 in self.hand_geoms or c.geom2 in self.hand_geoms:
+                deepest = max(deepest, -float(c.dist))
+        return deepest
+
+    def _hand_force(self) -> float:
+        f = np.zeros(6)
+        worst = 0.0
+        d = self.data
+        for i, c in enumerate(d.contact[: d.ncon]):
+            if c.geom1 in self.hand_geoms or c.geom2 in self.hand_geoms:
+                mujoco.mj_contactForce(self.model, d, i, f)
+                worst = max(worst, abs(f[0]))
+        return worst
+
+    def execute_primitive(self, waypoints: np.ndarray) -> PrimitiveResult:
+        """Run checked fingertip ``waypoints`` (N_WAYPOINTS, 3) from ``sim.primitive``, then settle.
+
+        Teleports the hand to the pre-contact waypoint (HACMan does the same in training), moves
+        through the rest with force-limited position control, parks the hand and waits for rest. A
+        start pose inside the object, clutter or a wall is refused and leaves the state unchanged.
+        """
+        m, d = self.model, self.data
+        saved = self.get_state()
+        d.qpos[self.hand_qadr] = waypoints[0]
+        d.qvel[self.hand_dadr] = 0.0
+        d.ctrl[:] = waypoints[0]
+        mujoco.mj_forward(m, d)
+        if self._hand_penetration() > START_PENETRATION_M:
+            self.set_state(saved)
+            return PrimitiveResult(False, "start pose in collision")
+        steps = 0
+        max_force = 0.0
+        dt = m.opt.timestep
+        target = waypoints[0].copy()
+        # The retract waypoint is replaced by parking: it only lifts the hand off the object.
+        for i in range(1, len(waypoints) - 1):
+            speed = PUSH_SPEED if i in PUSH_SEGMENTS else APPROACH_SPEED
+            n = max(1, int(np.ceil(np.linalg.norm(waypoints[i] - target) / (speed * dt))))
+            start = target
+            for s in range(1, n + 1):
+                d.ctrl[:] = start + (waypoints[i] - start) * (s / n)
+                mujoco.mj_step(m, d)
+            steps += n
+            target = waypoints[i].copy()
+            if i in PUSH_SEGMENTS:
+                mujoco.mj_step(m, d, nstep=TRACK_STEPS)
+                steps += TRACK_STEPS
+                max_force = max(max_force, self._hand_force())
+        # Retract: lift 6 cm at approach speed so the hand leaves the object gently, then park.
+        lift = waypoints[-1]
+        n = max(1, int(np.ceil(np.linalg.norm(lift - target) / (APPROACH_SPEED * dt))))
+        for s in range(1, n + 1):
+            d.ctrl[:] = target + (lift - target) * (s / n)
+            mujoco.mj_step(m, d)
+        steps += n
+        self.reset_hand()
+        steps += self.settle()
+        return PrimitiveResult(True, "", max_force, steps)

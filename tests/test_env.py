@@ -1,0 +1,120 @@
+"""The gymnasium env: check_env, determinism, reward terms, contract, batching, baselines."""
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import sim  # noqa: F401
+from sim.contract import FEATURE_DIM, SUCCESS_THRESHOLD_M, validate_observation
+from sim.env import BinEnv
+
+
+@pytest.mark.parametrize("goals", ["planar", "6d"])
+def test_check_env(goals):
+    env = gymnasium.make("hydo/Bin-v0", objects="cube", goals=goals).unwrapped
+    check_env(env, skip_render_check=True)
+
+
+def test_make_kwargs_and_spaces():
+    env = gymnasium.make("hydo/Bin-v0", objects="train", goals="6d", n_obj=32, n_bg=16)
+    obs, info = env.reset(seed=3)
+    assert obs["points"].shape == (48, 3) and obs["features"].shape == (48, FEATURE_DIM)
+    assert obs["normals"].shape == (32, 3)
+    validate_observation(obs, 32, 16)
+    assert env.observation_space.contains(obs)
+    # object points first: is_object flag is 1 exactly for the first n_obj points
+    assert np.all(obs["features"][:32, 0] == 1) and np.all(obs["features"][32:, 0] == 0)
+    assert np.all(obs["features"][32:, 1:] == 0)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="goals"):
+        BinEnv(objects="cube", goals="7d")
+    with pytest.raises(ValueError, match="clutter"):
+        BinEnv(objects="cube", clutter=3)
+
+
+def _rollout(seed, n=4):
+    env = BinEnv(objects="train", goals="6d")
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    trace = [obs["points"].copy()]
+    for _ in range(n):
+        action = (int(rng.integers(env.n_obj)), rng.uniform(-1, 1, 3))
+        obs, r, term, trunc, info = env.step(action)
+        trace.append(obs["points"].copy())
+        trace.append(np.array([r]))
+        if term or trunc:
+            break
+    return trace
+
+
+def test_seeding_is_exactly_reproducible():
+    a, b = _rollout(7), _rollout(7)
+    assert len(a) == len(b)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    c = _rollout(8)
+    assert not np.array_equal(a[0], c[0])
+
+
+def test_reward_is_sum_of_info_terms_and_success_threshold():
+    env = BinEnv(objects="cube", goals="planar")
+    env.reset(seed=0)
+    _, r, term, _, info = env.step((0, np.zeros(3)))
+    terms = sum(v for k, v in info.items() if k.startswith("reward_"))
+    assert r == pytest.approx(terms)
+    assert r == pytest.approx(-info["distance"])
+    assert info["success"] == (info["distance"] < SUCCESS_THRESHOLD_M)
+
+
+def test_goal_reached_when_object_placed_at_goal():
+    env = BinEnv(objects="cube", goals="6d")
+    env.reset(seed=1)
+    env.scene.set_object_pose(*env.goal_pose)
+    reward, success, dist = env._evaluate()
+    assert success and dist < 1e-6
+
+
+def test_rejected_primitive_leaves_scene_unchanged():
+    env = BinEnv(objects="cube", goals="planar")
+    env.reset(seed=2)
+    # a cube next to the +x wall, pushed from its +x face: the pre-contact waypoint lies behind the wall
+    env.scene.set_object_pose(np.array([0.19, 0.0, 0.03]), np.array([1.0, 0, 0, 0]))
+    obs = env._observe()
+    before = env.scene.get_state().copy()
+    n_obj = env.n_obj
+    i = int(np.argmax(obs["normals"][:, 0] * (obs["points"][:n_obj, 2] > 0.01)))
+    _, _, _, _, info = env.step((i, np.array([1.0, 0.0, 0.0])))
+    assert info["rejected"] and "workspace" in info["reject_reason"]
+    np.testing.assert_array_equal(env.scene.get_state(), before)
+
+
+def test_truncation_after_ten_primitives():
+    env = BinEnv(objects="cube", goals="planar")
+    env.reset(seed=4)
+    for k in range(10):
+        _, _, term, trunc, info = env.step((0, np.zeros(3)))
+        assert not term, "a null push cannot reach a goal that starts > 5 cm away"
+    assert trunc and info["failure"] == "timeout"
+
+
+def test_vector_env_steps_a_batch_in_one_process():
+    envs = gymnasium.vector.SyncVectorEnv([lambda: BinEnv(objects="train", goals="planar") for _ in range(3)])
+    obs, _ = envs.reset(seed=0)
+    assert obs["points"].shape[0] == 3
+    actions = (np.zeros(3, dtype=np.int64), np.zeros((3, 3), dtype=np.float32))
+    obs, r, term, trunc, _ = envs.step(actions)
+    assert r.shape == (3,)
+    envs.close()
+
+
+def test_clutter_enters_background():
+    env = BinEnv(objects="cube", goals="planar", clutter=2)
+    obs, _ = env.reset(seed=0)
+    assert len(env.scene.clutter) == 2
+    bg = obs["points"][env.n_obj :]
+    # some background points are above the floor and away from the walls: the clutter objects
+    inner = (np.abs(bg[:, 0]) < 0.2) & (np.abs(bg[:, 1]) < 0.25) & (bg[:, 2] > 0.01)
+    assert inner.sum() > 0

@@ -1,0 +1,212 @@
+"""Tests for sim.objects: the built-in object set (splits, sizes, convex parts, surface samples,
+determinism) and user mesh loading (valid file, and every refusal names the file)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+from sim.objects import (
+    N_SURFACE_SAMPLES,
+    SPEC_CHOICES,
+    SPLITS,
+    ObjectMeshError,
+    builtin_objects,
+    load_objects,
+    load_user_mesh,
+)
+
+
+@pytest.fixture(scope="module")
+def objs():
+    return builtin_objects()
+
+
+def _plane_dist(points, verts):
+    """Signed distance-like value (M,) of points to the hull of verts: <= 0 inside."""
+    eq = ConvexHull(verts).equations
+    return (points @ eq[:, :3].T + eq[:, 3]).max(axis=1)
+
+
+# ---------------------------------------------------------------------------------------- splits
+
+
+def test_set_size_names_and_splits(objs):
+    assert len(objs) >= 44
+    names = [o.name for o in objs]
+    assert len(set(names)) == len(names)
+    by_split = {s: load_objects(s) for s in SPLITS}
+    sets = {s: {o.name for o in v} for s, v in by_split.items()}
+    assert sets["train"].isdisjoint(sets["unseen-instance"])
+    assert sets["train"].isdisjoint(sets["unseen-category"])
+    assert sets["unseen-instance"].isdisjoint(sets["unseen-category"])
+    assert set().union(*sets.values()) == set(names)
+    assert (
+        len(sets["train"]) >= 28 and len(sets["unseen-instance"]) >= 5 and len(sets["unseen-category"]) >= 5
+    )
+    for s, v in by_split.items():
+        assert all(o.split == s for o in v)
+
+    cats = {s: {o.category for o in v} for s, v in by_split.items()}
+    assert cats["unseen-category"].isdisjoint(cats["train"])
+    assert len(cats["unseen-category"]) >= 5
+    assert cats["unseen-instance"] <= cats["train"]
+
+    unseen = {o.name for o in load_objects("unseen")}
+    assert unseen == sets["unseen-instance"] | sets["unseen-category"]
+    assert {o.name for o in load_objects("all")} == set(names)
+
+
+def test_cube_and_single_names(objs):
+    (cube,) = load_objects("cube")
+    assert cube.name == "cube"
+    np.testing.assert_allclose(cube.extents, [0.06, 0.06, 0.06], atol=1e-9)
+    for spec in SPEC_CHOICES:
+        assert len(load_objects(spec)) >= 1
+    (mug,) = load_objects("mug_02")
+    assert mug.name == "mug_02" and mug.category == "mug"
+    with pytest.raises(ValueError, match="unknown object spec"):
+        load_objects("no_such_object")
+
+
+# ------------------------------------------------------------------------------------- geometry
+
+
+def test_sizes_and_parts(objs):
+    for o in objs:
+        assert 0.06 - 1e-9 <= o.extents.max() <= 0.13, o.name
+        assert o.extents.min() >= 0.02 - 1e-9, o.name
+        assert 1 <= len(o.parts) <= 16 and len(o.parts) == len(o.part_faces), o.name
+        allv = np.concatenate(o.parts)
+        np.testing.assert_allclose(allv.max(0) - allv.min(0), o.extents, atol=1e-12)
+        for v, f in zip(o.parts, o.part_faces, strict=True):
+            assert v.ndim == 2 and v.shape[1] == 3 and len(v) <= 64, o.name
+            assert np.all(np.isfinite(v)), o.name
+            hull = ConvexHull(v)
+            assert hull.volume > 1e-7, o.name
+            # Convex: every stored vertex is a hull vertex, and the stored (outward-wound) faces
+            # enclose exactly the hull's volume (divergence theorem; negative if wound inward).
+            assert len(hull.vertices) == len(v), o.name
+            a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+            vol = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
+            assert vol == pytest.approx(hull.volume, rel=1e-6), o.name
+
+
+def test_centred_at_volume_centroid(objs):
+    # Parts do not overlap (mug handles only marginally), so the volume-weighted centroid is ~0.
+    for o in objs:
+        hulls = [ConvexHull(v) for v in o.parts]
+        vol = np.array([h.volume for h in hulls])
+        cents = []
+        for v, h in zip(o.parts, hulls, strict=True):
+            m = v.mean(0)
+            t = v[h.simplices]
+            w = np.abs(np.einsum("ij,ij->i", t[:, 0] - m, np.cross(t[:, 1] - m, t[:, 2] - m)))
+            cents.append((w[:, None] * (t.sum(1) + m)).sum(0) / (4 * w.sum()))
+        c = (vol[:, None] * np.array(cents)).sum(0) / vol.sum()
+        assert np.linalg.norm(c) < 1e-3, o.name
+
+
+def test_surface_samples_outward(objs):
+    for o in objs:
+        p, n = o.surface_points, o.surface_normals
+        assert p.shape == (N_SURFACE_SAMPLES, 3) and n.shape == (N_SURFACE_SAMPLES, 3)
+        assert p.dtype == np.float32 and n.dtype == np.float32
+        np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+        p64, n64 = p.astype(np.float64), n.astype(np.float64)
+        out = np.stack([_plane_dist(p64 + 0.003 * n64, v) for v in o.parts]).min(0)
+        inn = np.stack([_plane_dist(p64 - 0.001 * n64, v) for v in o.parts]).min(0)
+        assert np.mean(out > 0) >= 0.95, o.name  # 3 mm outwards leaves the object
+        assert np.mean(inn <= 1e-6) >= 0.95, o.name  # 1 mm inwards is inside some part
+        # Samples lie on the surface: on (not strictly inside) the closest part's boundary.
+        on = np.stack([_plane_dist(p64, v) for v in o.parts]).min(0)
+        assert np.all(np.abs(on) < 1e-5), o.name
+
+
+def test_deterministic():
+    first = builtin_objects()
+    builtin_objects.cache_clear()
+    second = builtin_objects()
+    assert first is not second
+    for a, b in zip(first, second, strict=True):
+        assert a.name == b.name and a.split == b.split and a.category == b.category
+        for x, y in zip(a.parts + a.part_faces, b.parts + b.part_faces, strict=True):
+            np.testing.assert_array_equal(x, y)
+        np.testing.assert_array_equal(a.surface_points, b.surface_points)
+        np.testing.assert_array_equal(a.surface_normals, b.surface_normals)
+        np.testing.assert_array_equal(a.extents, b.extents)
+
+
+def test_cached_arrays_are_read_only(objs):
+    with pytest.raises(ValueError):
+        objs[0].surface_points[0, 0] = 1.0
+
+
+# ---------------------------------------------------------------------------------- user meshes
+
+
+def _export_box(path, extents):
+    import trimesh
+
+    trimesh.creation.box(extents=extents).export(str(path))
+
+
+def test_user_mesh_valid(tmp_path):
+    f = tmp_path / "block.stl"
+    _export_box(f, [0.08, 0.05, 0.03])
+    (o,) = load_objects(str(f))
+    assert o.name == "block" and o.split == "user" and len(o.parts) == 1
+    np.testing.assert_allclose(o.extents, [0.08, 0.05, 0.03], atol=1e-9)
+    assert o.surface_points.shape == (N_SURFACE_SAMPLES, 3)
+    np.testing.assert_allclose(np.linalg.norm(o.surface_normals, axis=1), 1.0, atol=1e-5)
+    out = _plane_dist(o.surface_points + 0.003 * o.surface_normals, o.parts[0])
+    assert np.all(out > 0)  # outward normals
+    np.testing.assert_allclose(o.surface_points.mean(0), 0.0, atol=2e-3)  # centred
+    # A folder loads every .obj/.stl in it.
+    _export_box(tmp_path / "other.obj", [0.05, 0.05, 0.05])
+    (tmp_path / "notes.txt").write_text("not a mesh")
+    assert [o.name for o in load_objects(tmp_path)] == ["block", "other"]
+
+
+@pytest.mark.parametrize(
+    "fname, content, match",
+    [
+        ("garbage.stl", b"\x00\x01\x02 this is not a mesh " * 3, "not a valid STL"),
+        ("garbage.obj", b"hello world\n", "empty"),
+        (
+            "nan.obj",
+            b"v nan 0 0\nv 0.05 0 0\nv 0 0.05 0\nv 0 0 0.05\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n",
+            "non-finite",
+        ),
+        ("flat.obj", b"v 0 0 0\nv 0.05 0 0\nv 0 0.05 0\nv 0.05 0.05 0\nf 1 2 3\nf 2 4 3\n", "degenerate"),
+    ],
+)
+def test_user_mesh_refused(tmp_path, fname, content, match):
+    f = tmp_path / fname
+    f.write_bytes(content)
+    with pytest.raises(ObjectMeshError, match=match) as e:
+        load_user_mesh(f)
+    assert fname in str(e.value) and "\n" not in str(e.value)
+
+
+def test_user_mesh_bad_size(tmp_path):
+    f = tmp_path / "metre_cube.stl"
+    _export_box(f, [1.0, 1.0, 1.0])
+    with pytest.raises(ObjectMeshError, match="outside") as e:
+        load_user_mesh(f)
+    assert "metre_cube.stl" in str(e.value)
+
+    f = tmp_path / "mm_cube.obj"
+    _export_box(f, [50.0, 50.0, 50.0])
+    with pytest.raises(ObjectMeshError, match="millimetres") as e:
+        load_objects(str(f))
+    assert "mm_cube.obj" in str(e.value)
+
+
+def test_missing_and_empty_folder(tmp_path):
+    with pytest.raises(ObjectMeshError, match="no .obj or .stl") as e:
+        load_objects(str(tmp_path))
+    assert str(tmp_path) in str(e.value)
+    with pytest.raises(ObjectMeshError, match="not found"):
+        load_objects(str(tmp_path / "missing.obj"))
