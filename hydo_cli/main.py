@@ -36,5 +36,6 @@ def main() -> None:
         typer.secho(f"hydo: error: {e}", err=True, fg=typer.colors.RED)
         sys.exit(1)
 
+
 if __name__ == "__main__":
     main()

@@ -27,5 +27,7 @@ ObjectsOpt = Annotated[
     ),
 ]
 GoalsOpt = Annotated[Goals, typer.Option("--goals", help="Goal mode: planar (translation only) or 6d.")]
-ClutterOpt = Annotated[int, typer.Option("--clutter", help="Extra scene objects in the background: 0, 1, 2 or 5.")]
+ClutterOpt = Annotated[
+    int, typer.Option("--clutter", help="Extra scene objects in the background: 0, 1, 2 or 5.")
+]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed (episodes, goals, networks).")]

@@ -8,7 +8,7 @@ Run directory (``--out``)::
     metrics.jsonl    one line per log interval: env steps, updates, wall time, losses, temperatures
     eval.jsonl       periodic evaluation on held-out episodes (success rate, return)
     checkpoint.pt    latest checkpoint (atomic), also written at the end and on Ctrl-C
-    replay.pt        the replay buffer at the last checkpoint, so --resume continues exactly
+    replay.npz       the replay buffer at the last checkpoint, so --resume continues exactly
 
 ``--resume`` continues the step counter, networks, optimisers, temperatures, RNG and replay buffer;
 episodes in flight at the cut are restarted.
@@ -29,7 +29,6 @@ from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any
 
-import numpy as np
 import typer
 from rich.console import Console
 
@@ -166,25 +165,41 @@ def system_info() -> dict[str, Any]:
             versions[pkg] = md.version(pkg)
         except md.PackageNotFoundError:
             versions[pkg] = None
-    return {"python": sys.version, "platform": platform.platform(), "cpus": os.cpu_count(), "versions": versions}
+    return {
+        "python": sys.version,
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "versions": versions,
+    }
 
 
 def _default_out(cfg: TrainConfig) -> Path:
-    return Path("runs") / f"{cfg.algo}-{cfg.goals}-{cfg.objects.replace('/', '_')}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+    return (
+        Path("runs")
+        / f"{cfg.algo}-{cfg.goals}-{cfg.objects.replace('/', '_')}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+    )
 
 
 def train(
-    algo: Annotated[Algo | None, typer.Option("--algo", help="Learner (design.md §1). [default: hydo-cm]")] = None,
+    algo: Annotated[
+        Algo | None, typer.Option("--algo", help="Learner (design.md §1). [default: hydo-cm]")
+    ] = None,
     goals: Annotated[str | None, typer.Option("--goals", help="planar | 6d. [default: planar]")] = None,
     objects: Annotated[
         str | None, typer.Option("--objects", help="Object set, object name or mesh folder. [default: train]")
     ] = None,
-    clutter: Annotated[int | None, typer.Option("--clutter", help="Extra scene objects: 0, 1, 2 or 5.")] = None,
+    clutter: Annotated[
+        int | None, typer.Option("--clutter", help="Extra scene objects: 0, 1, 2 or 5.")
+    ] = None,
     steps: Annotated[int | None, typer.Option("--steps", help="Env steps (primitives) to train for.")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Random seed.")] = None,
     denoise_steps: Annotated[int | None, typer.Option("--k", help="Denoising steps K (ddpm / cm).")] = None,
-    out: Annotated[Path | None, typer.Option("--out", help="Run directory (default: runs/<algo>-...).")] = None,
-    resume: Annotated[Path | None, typer.Option("--resume", help="Continue the run in this directory.")] = None,
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Run directory (default: runs/<algo>-...).")
+    ] = None,
+    resume: Annotated[
+        Path | None, typer.Option("--resume", help="Continue the run in this directory.")
+    ] = None,
     config: Annotated[Path | None, typer.Option("--config", help="TOML file of config keys.")] = None,
     preset: Annotated[str | None, typer.Option("--preset", help=f"One of {list(PRESETS)}.")] = None,
 ) -> None:

@@ -111,7 +111,9 @@ class BinEnv(gym.Env):
 
     def _observe(self) -> dict[str, np.ndarray]:
         obj_p, obj_n, bg = self.observer.segmented_clouds(self.scene)
-        obs = build_observation(obj_p, obj_n, bg, self.scene.object_T(), self.T_goal, self.n_obj, self.n_bg, self.np_random)
+        obs = build_observation(
+            obj_p, obj_n, bg, self.scene.object_T(), self.T_goal, self.n_obj, self.n_bg, self.np_random
+        )
         self._obs = obs
         return obs
 
@@ -141,7 +143,9 @@ class BinEnv(gym.Env):
             asset = by_name[options["object"]]
         else:
             asset = self.assets[rng.integers(len(self.assets))]
-        clutter = tuple(self._clutter_pool[rng.integers(len(self._clutter_pool))] for _ in range(self.n_clutter))
+        clutter = tuple(
+            self._clutter_pool[rng.integers(len(self._clutter_pool))] for _ in range(self.n_clutter)
+        )
         self.scene = self._get_scene(asset, clutter)
         self.scene.reset()  # full reset: MuJoCo's warm-start state must not leak between episodes
         poses = self._poses[asset.name]
@@ -218,6 +222,7 @@ class BinEnv(gym.Env):
         return render_rgb(self)
 
     def close(self):
+        getattr(self.observer, "close", lambda: None)()
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None

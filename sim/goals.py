@@ -48,7 +48,12 @@ def random_quaternion(rng: np.random.Generator) -> np.ndarray:
     u1, u2, u3 = rng.random(3)
     a, b = np.sqrt(1 - u1), np.sqrt(u1)
     return np.array(
-        [b * np.cos(2 * np.pi * u3), a * np.sin(2 * np.pi * u2), a * np.cos(2 * np.pi * u2), b * np.sin(2 * np.pi * u3)]
+        [
+            b * np.cos(2 * np.pi * u3),
+            a * np.sin(2 * np.pi * u2),
+            a * np.cos(2 * np.pi * u2),
+            b * np.sin(2 * np.pi * u3),
+        ]
     )
 
 
@@ -75,7 +80,9 @@ def yaw_quat(yaw: float) -> np.ndarray:
     return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
 
 
-def compute_stable_poses(asset: ObjectAsset, n: int = N_STABLE_POSES, seed: int = 0, progress=None) -> np.ndarray:
+def compute_stable_poses(
+    asset: ObjectAsset, n: int = N_STABLE_POSES, seed: int = 0, progress=None
+) -> np.ndarray:
     """Drop ``asset`` from random orientations and keep ``n`` rest poses that stay put for 1 s.
 
     Returns ``(n, 5)`` float64 rows ``(z, qw, qx, qy, qz)``. ``progress(i, n)`` is called per pose.
@@ -158,7 +165,9 @@ def footprint_radius(asset: ObjectAsset, quat_wxyz: np.ndarray) -> float:
     return float(np.linalg.norm((asset.surface_points @ R.T)[:, :2], axis=1).max())
 
 
-def sample_placement(asset: ObjectAsset, pose: np.ndarray, rng: np.random.Generator, yaw: float | None = None):
+def sample_placement(
+    asset: ObjectAsset, pose: np.ndarray, rng: np.random.Generator, yaw: float | None = None
+):
     """Place stable ``pose`` (5,) at a random yaw and bin position: returns ``(pos (3,), quat (4,))``."""
     yaw = rng.uniform(-np.pi, np.pi) if yaw is None else yaw
     quat = quat_mul(yaw_quat(yaw), pose[1:5])

@@ -60,7 +60,9 @@ class MeshObserver:
 
     def segmented_clouds(self, scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(obj_points (M, 3), obj_normals (M, 3), bg_points (L, 3))`` world frame, metres."""
-        obj_p, obj_n = visible_surface(scene.asset.surface_points, scene.asset.surface_normals, scene.object_T())
+        obj_p, obj_n = visible_surface(
+            scene.asset.surface_points, scene.asset.surface_normals, scene.object_T()
+        )
         bg = [bin_background_points()]
         for i, c in enumerate(scene.clutter):
             bg.append(visible_surface(c.surface_points, c.surface_normals, scene.object_T(f"clutter{i}"))[0])

@@ -43,7 +43,6 @@ class PrimitiveResult:
 
     executed: bool
     reason: str = ""  # why it was not executed
-    max_contact_force: float = 0.0  # N, largest hand contact normal force seen while pushing
     physics_steps: int = 0
 
 
@@ -228,23 +227,13 @@ class BinScene:
         return steps
 
     def _hand_penetration(self) -> float:
-        """Deepest penetration (m, >= 0) of any hand geom into anything."""
+        """Deepest penetration (m, >= 0) of any hand geom into anything (vectorised over contacts)."""
         d = self.data
-        deepest = 0.0
-        for c in d.contact[: d.ncon]:
-            if c.geom1 in self.hand_geoms or c.geom2 in self.hand_geoms:
-                deepest = max(deepest, -float(c.dist))
-        return deepest
-
-    def _hand_force(self) -> float:
-        f = np.zeros(6)
-        worst = 0.0
-        d = self.data
-        for i, c in enumerate(d.contact[: d.ncon]):
-            if c.geom1 in self.hand_geoms or c.geom2 in self.hand_geoms:
-                mujoco.mj_contactForce(self.model, d, i, f)
-                worst = max(worst, abs(f[0]))
-        return worst
+        if d.ncon == 0:
+            return 0.0
+        geoms = d.contact.geom[: d.ncon]
+        hand = np.isin(geoms, self.hand_geoms).any(axis=1)
+        return float(max(0.0, -d.contact.dist[: d.ncon][hand].min())) if hand.any() else 0.0
 
     def execute_primitive(self, waypoints: np.ndarray) -> PrimitiveResult:
         """Run checked fingertip ``waypoints`` (N_WAYPOINTS, 3) from ``sim.primitive``, then settle.
@@ -263,7 +252,6 @@ class BinScene:
             self.set_state(saved)
             return PrimitiveResult(False, "start pose in collision")
         steps = 0
-        max_force = 0.0
         dt = m.opt.timestep
         target = waypoints[0].copy()
         # The retract waypoint is replaced by parking: it only lifts the hand off the object.
@@ -279,7 +267,6 @@ class BinScene:
             if i in PUSH_SEGMENTS:
                 mujoco.mj_step(m, d, nstep=TRACK_STEPS)
                 steps += TRACK_STEPS
-                max_force = max(max_force, self._hand_force())
         # Retract: lift 6 cm at approach speed so the hand leaves the object gently, then park.
         lift = waypoints[-1]
         n = max(1, int(np.ceil(np.linalg.norm(lift - target) / (APPROACH_SPEED * dt))))
@@ -289,4 +276,4 @@ class BinScene:
         steps += n
         self.reset_hand()
         steps += self.settle()
-        return PrimitiveResult(True, "", max_force, steps)
+        return PrimitiveResult(True, "", steps)
