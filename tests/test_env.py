@@ -94,7 +94,7 @@ def test_rejected_primitive_leaves_scene_unchanged():
 def test_truncation_after_ten_primitives():
     env = BinEnv(objects="cube", goals="planar")
     env.reset(seed=4)
-    for k in range(10):
+    for _k in range(10):
         _, _, term, trunc, info = env.step((0, np.zeros(3)))
         assert not term, "a null push cannot reach a goal that starts > 5 cm away"
     assert trunc and info["failure"] == "timeout"
