@@ -39,10 +39,17 @@ def make_envs(objects, goals, clutter, obs, n_envs, n_obj=None, n_bg=None, rende
     import sim  # noqa: F401  (registers hydo/Bin-v0)
     from sim.contract import DEFAULT_N_BG, DEFAULT_N_OBJ
     from sim.env import BinEnv
+    from sim.objects import ObjectMeshError, load_objects
 
+    try:
+        assets = load_objects(objects)
+    except ObjectMeshError:
+        raise
+    except ValueError as e:  # an unknown split or object name: say which forms are valid
+        raise HydoError(str(e)) from None
     return [
         BinEnv(
-            objects=objects,
+            objects=assets,
             goals=goals,
             obs=obs,
             clutter=clutter,

@@ -1,0 +1,77 @@
+"""The ``hydo`` command line: help, baselines, and one-line errors with non-zero exits."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from hydo_cli.main import app
+
+runner = CliRunner()
+
+
+def hydo(*args, cwd=None):
+    """Run the real console entry point (``main``), which maps known errors to one line."""
+    return subprocess.run(
+        [sys.executable, "-c", "from hydo_cli.main import main; main()", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=300,
+    )
+
+
+def test_help_lists_the_four_commands():
+    result = runner.invoke(app, ["--help"])
+    assert result.exit_code == 0
+    for cmd in ("train", "eval", "export", "deploy"):
+        assert cmd in result.output
+    for cmd in ("train", "eval", "export", "deploy"):
+        r = runner.invoke(app, [cmd, "--help"])
+        assert r.exit_code == 0 and "Usage" in r.output, cmd
+
+
+def test_eval_heuristic_writes_json(tmp_path):
+    out = tmp_path / "h.json"
+    r = hydo("eval", "heuristic", "--objects", "cube", "--episodes", "3", "--json", str(out))
+    assert r.returncode == 0, r.stderr
+    data = json.loads(out.read_text())
+    assert data["episodes"] == 3 and 0.0 <= data["success_rate"] <= 1.0
+    assert len(data["episodes_detail"]) == 3 and data["stochastic"] is False
+
+
+def test_eval_video(tmp_path):
+    import cv2
+
+    out = tmp_path / "v.mp4"
+    r = hydo("eval", "random", "--objects", "cube", "--episodes", "1", "--video", str(out))
+    assert r.returncode == 0, r.stderr
+    cap = cv2.VideoCapture(str(out))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) >= 2
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["eval", "no/such/run"], "neither a baseline"),
+        (["eval", "heuristic", "--objects", "no_such_object"], "no_such_object"),
+        (["eval", "heuristic", "--episodes", "0"], "--episodes"),
+        (["train", "--config", "missing.toml"], "missing.toml"),
+        (["train", "--resume", "no/such/run"], "not a run directory"),
+    ],
+)
+def test_bad_input_is_one_line_and_nonzero(args, message, tmp_path):
+    r = hydo(*args, cwd=tmp_path)
+    assert r.returncode != 0
+    assert "Traceback" not in r.stderr, r.stderr
+    assert message in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_user_mesh_folder_errors_name_the_file(tmp_path):
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "broken.obj").write_text("this is not a mesh\n")
+    r = hydo("eval", "heuristic", "--objects", str(tmp_path / "meshes"), "--episodes", "1")
+    assert r.returncode != 0 and "broken.obj" in r.stderr and "Traceback" not in r.stderr
