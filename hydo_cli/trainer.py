@@ -16,14 +16,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 from hydo_cli.errors import HydoError
 from hydo_cli.evaluate import make_envs
 from hydo_cli.policies import LoadedPolicy
 from hydo_cli.rollout import run_episodes, summarize
 from hydo_cli.train import TrainConfig
-from models import AgentConfig, HybridAgent
+from models.algos import AgentConfig, HybridAgent
+from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from models.replay import ReplayBuffer
 
 CHECKPOINT_FORMAT = 1
@@ -288,8 +288,8 @@ class Trainer:
         )
 
 
-def load_policy_from_checkpoint(path: Path, seed: int) -> LoadedPolicy:
-    """A run directory (its ``checkpoint.pt``) or a checkpoint file → eval-mode batched policy."""
+def load_agent(path: Path) -> tuple[HybridAgent, TrainConfig, str]:
+    """A run directory (its ``checkpoint.pt``) or a checkpoint file → ``(agent, config, command)``."""
     path = Path(path)
     ckpt_path = path / "checkpoint.pt" if path.is_dir() else path
     if path.is_dir() and not ckpt_path.exists():
@@ -297,10 +297,23 @@ def load_policy_from_checkpoint(path: Path, seed: int) -> LoadedPolicy:
     ckpt = load_checkpoint(ckpt_path)
     if int(ckpt.get("format", -1)) != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{ckpt_path}: checkpoint format {ckpt.get('format')} != {CHECKPOINT_FORMAT}")
-    cfg = TrainConfig(**json.loads(ckpt["config"]))
-    agent = HybridAgent(agent_config(cfg))
-    agent.load_state_dict(ckpt["agent"])
+    try:
+        cfg = TrainConfig(**json.loads(ckpt["config"]))
+        agent = HybridAgent(agent_config(cfg))
+        agent.load_state_dict(ckpt["agent"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        raise CheckpointError(
+            f"{ckpt_path} does not hold a loadable hydo agent ({str(e).splitlines()[0][:120]})"
+        ) from None
+    command_file = ckpt_path.parent / "command.txt"
+    command = command_file.read_text().strip() if command_file.exists() else "unknown"
+    return agent, cfg, command
+
+
+def load_policy_from_checkpoint(path: Path, seed: int) -> LoadedPolicy:
+    """A run directory or checkpoint file → eval-mode batched policy."""
+    agent, cfg, _ = load_agent(path)
     policy = agent_policy(agent, "eval", torch.Generator().manual_seed(seed))
     return LoadedPolicy(
-        policy, cfg.n_obj, cfg.n_bg, agent.motion_policy.stochastic_eval, f"{cfg.algo} ({ckpt_path})"
+        policy, cfg.n_obj, cfg.n_bg, agent.motion_policy.stochastic_eval, f"{cfg.algo} ({path})"
     )
