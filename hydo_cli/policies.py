@@ -30,6 +30,26 @@ def load_policy(target: str, seed: int = 0) -> LoadedPolicy:
             f"eval target '{target}' is neither a baseline ({', '.join(BASELINES)}) nor an existing run, "
             "checkpoint or model folder"
         )
+    if path.is_dir() and (path / "manifest.json").exists():
+        return load_onnx_policy(path, seed)
     from hydo_cli.train import load_agent_policy
 
     return load_agent_policy(path, seed)
+
+
+def load_onnx_policy(folder: Path, seed: int) -> LoadedPolicy:
+    """An exported model folder, run through onnxruntime (``robot.onnx_policy``, no torch)."""
+    import numpy as np
+
+    from robot.onnx_policy import OnnxPolicy
+
+    model = OnnxPolicy.load(folder)
+    rng = np.random.default_rng(seed)
+
+    def policy(observations):
+        points = np.stack([o["points"] for o in observations])
+        features = np.stack([o["features"] for o in observations])
+        out = model.decide(points, features, model.noise(len(observations), rng))
+        return list(zip(out["index"].tolist(), out["motion"], strict=True))
+
+    return LoadedPolicy(policy, model.n_obj, model.n_bg, model.stochastic, f"{model.manifest['algo']} (onnx {folder})")
