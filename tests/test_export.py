@@ -1,0 +1,154 @@
+"""ONNX export: parity with torch, the torch-free runner, and refusal of bad model folders."""
+
+import json
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from hydo_cli.export import export_agent
+from hydo_cli.train import TrainConfig
+from hydo_cli.trainer import agent_config
+from models.algos import HybridAgent
+from robot.errors import InputError, ModelLoadError
+from robot.onnx_policy import OnnxPolicy
+
+TINY = dict(feature_dim=16, encoder_hidden=16, encoder_global=16, actor_hidden=16, critic_hidden=16)
+
+
+@pytest.fixture(scope="module", params=["hydo-cm", "hacman"])
+def exported(request, tmp_path_factory):
+    cfg = TrainConfig(algo=request.param, objects="cube", n_obj=32, n_bg=16, agent=TINY)
+    agent = HybridAgent(agent_config(cfg))
+    out = tmp_path_factory.mktemp("export") / "model"
+    report = export_agent(agent, cfg, "pytest", out, n_checks=32)
+    return out, report, agent, cfg
+
+
+def test_parity_and_manifest(exported):
+    out, report, agent, cfg = exported
+    assert report["max_abs_error_motion"] <= 1e-4 and report["max_abs_error_q"] <= 1e-4
+    assert report["index_agreement"] == 1.0 and report["n"] == 32
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["algo"] == cfg.algo and manifest["n_obj"] == 32 and manifest["denoise_steps"] == 5
+    assert set(manifest["sha256"]) == {"encoder.onnx", "actor.onnx", "critic.onnx"}
+    import onnx
+
+    props = {p.key: p.value for p in onnx.load(str(out / "actor.onnx")).metadata_props}
+    assert json.loads(props["algo"]) == cfg.algo
+
+
+def test_fixed_noise_gives_identical_motions(exported):
+    out, _, agent, cfg = exported
+    policy = OnnxPolicy.load(out)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-0.1, 0.1, (2, 48, 3)).astype(np.float32)
+    feats = np.zeros((2, 48, 4), np.float32)
+    feats[:, :32, 0] = 1
+    feats[:, :32, 1:] = rng.normal(0, 0.05, (2, 32, 3))
+    noise = policy.noise(2, rng)
+    a = policy.decide(pts, feats, noise)
+    b = policy.decide(pts, feats, noise)
+    np.testing.assert_array_equal(a["motions"], b["motions"])
+    assert np.all(np.abs(a["motions"]) <= 1.0)
+
+
+def test_runner_imports_no_torch(exported, tmp_path):
+    out = exported[0]
+    script = textwrap.dedent(
+        f"""
+        import sys, importlib.abc
+        class Block(importlib.abc.MetaPathFinder):
+            def find_spec(self, name, path, target=None):
+                if name == "torch" or name.startswith("torch."):
+                    raise ImportError("torch is blocked in this test")
+        sys.meta_path.insert(0, Block())
+        import numpy as np
+        from robot.onnx_policy import OnnxPolicy
+        p = OnnxPolicy.load({str(out)!r})
+        n = p.n_obj + p.n_bg
+        feats = np.zeros((n, 4), np.float32); feats[: p.n_obj, 0] = 1
+        i, m, _ = p.act(np.random.default_rng(0).uniform(-0.1, 0.1, (n, 3)).astype(np.float32), feats,
+                        np.random.default_rng(1))
+        assert 0 <= i < p.n_obj and m.shape == (3,)
+        assert "torch" not in sys.modules
+        print("ok")
+        """
+    )
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "ok" in r.stdout, r.stderr
+
+
+def _copy(out, tmp_path):
+    dst = tmp_path / "m"
+    shutil.copytree(out, dst)
+    return dst
+
+
+def test_refuses_missing_file(exported, tmp_path):
+    d = _copy(exported[0], tmp_path)
+    (d / "critic.onnx").unlink()
+    with pytest.raises(ModelLoadError, match="critic.onnx is missing"):
+        OnnxPolicy.load(d)
+
+
+def test_refuses_hash_mismatch(exported, tmp_path):
+    d = _copy(exported[0], tmp_path)
+    with open(d / "actor.onnx", "ab") as f:
+        f.write(b"\0")
+    with pytest.raises(ModelLoadError, match="sha256"):
+        OnnxPolicy.load(d)
+
+
+def test_refuses_truncated_onnx_even_with_matching_hash(exported, tmp_path):
+    from robot.onnx_policy import sha256_file
+
+    d = _copy(exported[0], tmp_path)
+    data = (d / "encoder.onnx").read_bytes()
+    (d / "encoder.onnx").write_bytes(data[: len(data) // 2])
+    m = json.loads((d / "manifest.json").read_text())
+    m["sha256"]["encoder.onnx"] = sha256_file(d / "encoder.onnx")
+    (d / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(ModelLoadError, match="cannot be loaded by onnxruntime"):
+        OnnxPolicy.load(d)
+
+
+def test_refuses_contract_mismatch_and_bad_manifest(exported, tmp_path):
+    d = _copy(exported[0], tmp_path)
+    m = json.loads((d / "manifest.json").read_text())
+    m["obs_contract_version"] = 999
+    (d / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(ModelLoadError, match="observation contract"):
+        OnnxPolicy.load(d)
+    (d / "manifest.json").write_text("{not json")
+    with pytest.raises(ModelLoadError, match="not valid JSON"):
+        OnnxPolicy.load(d)
+    with pytest.raises(ModelLoadError, match="does not exist"):
+        OnnxPolicy.load(tmp_path / "nope")
+
+
+def test_refuses_wrong_shapes_and_nans(exported):
+    policy = OnnxPolicy.load(exported[0])
+    rng = np.random.default_rng(0)
+    with pytest.raises(InputError, match="points"):
+        policy.act(np.zeros((10, 3), np.float32), np.zeros((48, 4), np.float32), rng)
+    pts = np.zeros((48, 3), np.float32)
+    pts[3, 1] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        policy.act(pts, np.zeros((48, 4), np.float32), rng)
+
+
+def test_cli_export_refuses_bad_checkpoint(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"garbage")
+    r = subprocess.run(
+        [sys.executable, "-c", "from hydo_cli.main import main; main()", "export", str(bad), "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 1 and "bad.pt" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not (tmp_path / "o").exists()
