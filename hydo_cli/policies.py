@@ -52,4 +52,6 @@ def load_onnx_policy(folder: Path, seed: int) -> LoadedPolicy:
         out = model.decide(points, features, model.noise(len(observations), rng))
         return list(zip(out["index"].tolist(), out["motion"], strict=True))
 
-    return LoadedPolicy(policy, model.n_obj, model.n_bg, model.stochastic, f"{model.manifest['algo']} (onnx {folder})")
+    return LoadedPolicy(
+        policy, model.n_obj, model.n_bg, model.stochastic, f"{model.manifest['algo']} (onnx {folder})"
+    )

@@ -145,7 +145,15 @@ def test_cli_export_refuses_bad_checkpoint(tmp_path):
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"garbage")
     r = subprocess.run(
-        [sys.executable, "-c", "from hydo_cli.main import main; main()", "export", str(bad), "--out", str(tmp_path / "o")],
+        [
+            sys.executable,
+            "-c",
+            "from hydo_cli.main import main; main()",
+            "export",
+            str(bad),
+            "--out",
+            str(tmp_path / "o"),
+        ],
         capture_output=True,
         text=True,
         timeout=120,
