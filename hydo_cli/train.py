@@ -72,6 +72,8 @@ class TrainConfig:
     """Extra scene objects: 0, 1, 2 or 5."""
     steps: int = 30_000
     """Environment steps (primitives) to train for."""
+    max_minutes: float = 0.0
+    """Wall-clock budget in minutes (0: none): stop, evaluate and checkpoint once it is spent."""
     seed: int = 0
     """Seed of envs, networks and sampling."""
     n_obj: int = 128
@@ -194,6 +196,9 @@ def train(
     steps: Annotated[int | None, typer.Option("--steps", help="Env steps (primitives) to train for.")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Random seed.")] = None,
     denoise_steps: Annotated[int | None, typer.Option("--k", help="Denoising steps K (ddpm / cm).")] = None,
+    max_minutes: Annotated[
+        float | None, typer.Option("--minutes", help="Wall-clock budget (0: none).")
+    ] = None,
     out: Annotated[
         Path | None, typer.Option("--out", help="Run directory (default: runs/<algo>-...).")
     ] = None,
@@ -222,6 +227,7 @@ def train(
                 steps=steps,
                 seed=seed,
                 denoise_steps=denoise_steps,
+                max_minutes=max_minutes,
             ),
         )
         run_dir = out or _default_out(cfg)

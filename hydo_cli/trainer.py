@@ -171,7 +171,8 @@ class Trainer:
         task = progress.add_task("train", total=cfg.steps, completed=self.env_steps, stats="")
         try:
             with progress:
-                while self.env_steps < cfg.steps:
+                budget_s = cfg.max_minutes * 60 if cfg.max_minutes > 0 else math.inf
+                while self.env_steps < cfg.steps and time.perf_counter() - t_start < budget_s:
                     # 1. act: random before learning starts, then the agent's exploration policy
                     if self.env_steps < cfg.learning_starts:
                         actions = [

@@ -1,0 +1,86 @@
+"""Learning curves from training runs: success rate vs env steps and vs wall-clock minutes.
+
+    python bench/curves.py runs/hydo-cm-* runs/hacman-* [--json curves.json]
+
+Reads each run's ``eval.jsonl`` (written by ``hydo train`` at every evaluation) and ``config.json``,
+groups runs by (algo, goals, objects), and prints per group the mean (min-max over seeds) success
+rate at each evaluation step, with the wall-clock minutes at which it was measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+
+
+def load_run(run: Path) -> dict:
+    cfg = json.loads((run / "config.json").read_text())
+    rows = [json.loads(line) for line in (run / "eval.jsonl").read_text().splitlines() if line.strip()]
+    return {"run": str(run), "config": cfg, "evals": rows}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    from rich.console import Console
+    from rich.table import Table
+
+    from hydo_cli.util import atomic_write_text
+
+    groups: dict[tuple, list[dict]] = defaultdict(list)
+    for run in args.runs:
+        if not (run / "eval.jsonl").exists():
+            print(f"skipping {run}: no eval.jsonl", file=sys.stderr)
+            continue
+        r = load_run(run)
+        c = r["config"]
+        groups[(c["algo"], c["goals"], c["objects"])].append(r)
+    out = {}
+    console = Console()
+    for (algo, goals, objects), runs in sorted(groups.items()):
+        steps = sorted({e["env_steps"] for r in runs for e in r["evals"]})
+        table = Table(title=f"{algo}  {goals} goals  objects={objects}  ({len(runs)} seeds)")
+        for col in ("env steps", "minutes (mean)", "success mean", "min", "max", "episodes/eval"):
+            table.add_column(col, justify="right")
+        curve = []
+        for s in steps:
+            at = [e for r in runs for e in r["evals"] if e["env_steps"] == s]
+            sr = np.array([e["success_rate"] for e in at])
+            minutes = float(np.mean([e["wall_s"] for e in at]) / 60)
+            curve.append(
+                {
+                    "env_steps": s,
+                    "minutes": minutes,
+                    "success_mean": float(sr.mean()),
+                    "success_min": float(sr.min()),
+                    "success_max": float(sr.max()),
+                    "seeds": len(at),
+                    "episodes": int(at[0]["episodes"]),
+                }
+            )
+            table.add_row(
+                str(s),
+                f"{minutes:.1f}",
+                f"{sr.mean():.0%}",
+                f"{sr.min():.0%}",
+                f"{sr.max():.0%}",
+                str(at[0]["episodes"]),
+            )
+        console.print(table)
+        out[f"{algo}/{goals}/{objects}"] = {"runs": [r["run"] for r in runs], "curve": curve}
+    if args.json:
+        atomic_write_text(args.json, json.dumps(out, indent=2))
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
