@@ -18,6 +18,13 @@ class ObsSource(str, Enum):
     render = "render"
 
 
+class TaskName(str, Enum):
+    """Behaviour-diversity tasks (``sim.tasks.TASKS``; a test keeps the two lists equal)."""
+
+    push_line = "push-line"
+    push_align = "push-align"
+
+
 ObjectsOpt = Annotated[
     str,
     typer.Option(
@@ -31,3 +38,11 @@ ClutterOpt = Annotated[
     int, typer.Option("--clutter", help="Extra scene objects in the background: 0, 1, 2 or 5.")
 ]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed (episodes, goals, networks).")]
+TaskOpt = Annotated[
+    TaskName | None,
+    typer.Option(
+        "--task",
+        help="Behaviour-diversity task (paper §V-C, sim/tasks.py): push-line (|B|=24) or push-align (|B|=2). "
+        "It fixes the object (cube), start, goal and obstacles.",
+    ),
+]

@@ -18,12 +18,13 @@ class LoadedPolicy:
     n_bg: int | None
     stochastic: bool  # whether the policy samples at evaluation time
     description: str
+    method: str = ""  # what --compare groups by: the run's / manifest's algo, or the baseline's name
 
 
 def load_policy(target: str, seed: int = 0) -> LoadedPolicy:
     """A baseline name, a run directory (its latest checkpoint) or a checkpoint file."""
     if target in BASELINES:
-        return LoadedPolicy(baseline_policy(target, seed), None, None, target == "random", target)
+        return LoadedPolicy(baseline_policy(target, seed), None, None, target == "random", target, target)
     path = Path(target)
     if not path.exists():
         raise HydoError(
@@ -32,6 +33,15 @@ def load_policy(target: str, seed: int = 0) -> LoadedPolicy:
         )
     if path.is_dir() and (path / "manifest.json").exists():
         return load_onnx_policy(path, seed)
+    if path.is_dir() and not (path / "checkpoint.pt").exists():
+        what = (
+            "has .onnx files but no manifest.json: re-export it"
+            if any(path.glob("*.onnx"))
+            else "holds neither checkpoint.pt (a training run) nor manifest.json (an exported model)"
+        )
+        raise HydoError(f"eval target '{target}' {what}")
+    if path.is_file() and path.suffix == ".onnx":
+        raise HydoError(f"eval target '{target}' is one graph of a model: give its folder ({path.parent})")
     from hydo_cli.train import load_agent_policy
 
     return load_agent_policy(path, seed)
@@ -53,5 +63,10 @@ def load_onnx_policy(folder: Path, seed: int) -> LoadedPolicy:
         return list(zip(out["index"].tolist(), out["motion"], strict=True))
 
     return LoadedPolicy(
-        policy, model.n_obj, model.n_bg, model.stochastic, f"{model.manifest['algo']} (onnx {folder})"
+        policy,
+        model.n_obj,
+        model.n_bg,
+        model.stochastic,
+        f"{model.manifest['algo']} (onnx {folder})",
+        str(model.manifest["algo"]),
     )

@@ -25,6 +25,7 @@ class EpisodeResult:
     final_distance: float  # mean goal-flow norm at the end, metres
     rejected: int  # primitives refused (workspace or start collision)
     failure: str  # "" on success, else "object_left_bin" | "timeout"
+    behaviour: int | None = None  # behaviour id of a ``sim.tasks`` task episode (None: none / no task)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -83,6 +84,7 @@ def run_episodes(
                     final_distance=info["distance"],
                     rejected=s["rej"],
                     failure="" if info["success"] else info["failure"],
+                    behaviour=info.get("behaviour"),
                 )
                 results[s["ep"]] = r
                 if on_episode is not None:

@@ -33,6 +33,7 @@ import typer
 from rich.console import Console
 
 from hydo_cli.errors import HydoError
+from hydo_cli.options import TaskOpt
 from hydo_cli.util import atomic_write_text
 
 HELP = """Train a hybrid policy (HyDo or a baseline) in the simulated bin.
@@ -70,6 +71,8 @@ class TrainConfig:
     """Object set (split name, object name or mesh folder)."""
     clutter: int = 0
     """Extra scene objects: 0, 1, 2 or 5."""
+    task: str | None = None
+    """Behaviour-diversity task (sim/tasks.py: push-line | push-align, random starts) instead of objects/goals."""
     steps: int = 30_000
     """Environment steps (primitives) to train for."""
     max_minutes: float = 0.0
@@ -116,6 +119,11 @@ class TrainConfig:
                 raise HydoError(f"`{name}` must be at least 1. Got {getattr(self, name)}.")
         if self.updates_per_step < 0:
             raise HydoError(f"`updates_per_step` must be >= 0. Got {self.updates_per_step}.")
+        if self.task is not None:  # --task (eval issue): its scene replaces objects, goals and clutter
+            from sim.tasks import TASK_NAMES
+
+            if self.task not in TASK_NAMES:
+                raise HydoError(f"`task` must be one of {list(TASK_NAMES)}. Got {self.task!r}.")
 
 
 #: Named starting points; flags and --config override them.
@@ -196,6 +204,7 @@ def train(
     steps: Annotated[int | None, typer.Option("--steps", help="Env steps (primitives) to train for.")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Random seed.")] = None,
     denoise_steps: Annotated[int | None, typer.Option("--k", help="Denoising steps K (ddpm / cm).")] = None,
+    task: TaskOpt = None,
     max_minutes: Annotated[
         float | None, typer.Option("--minutes", help="Wall-clock budget (0: none).")
     ] = None,
@@ -228,6 +237,7 @@ def train(
                 seed=seed,
                 denoise_steps=denoise_steps,
                 max_minutes=max_minutes,
+                task=task.value if task else None,
             ),
         )
         run_dir = out or _default_out(cfg)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import resource
 import signal
 import time
 from collections import deque
@@ -75,7 +76,17 @@ class Trainer:
     def __init__(self, cfg: TrainConfig, run_dir: Path, resume: bool = False):
         torch.set_num_threads(2)
         self.cfg, self.run_dir = cfg, Path(run_dir)
-        self.envs = make_envs(cfg.objects, cfg.goals, cfg.clutter, "mesh", cfg.n_envs, cfg.n_obj, cfg.n_bg)
+        self.envs = make_envs(
+            cfg.objects,
+            cfg.goals,
+            cfg.clutter,
+            "mesh",
+            cfg.n_envs,
+            cfg.n_obj,
+            cfg.n_bg,
+            task=cfg.task,
+            task_start="random",
+        )
         torch.manual_seed(cfg.seed)
         self.agent = HybridAgent(agent_config(cfg))
         self.buffer = ReplayBuffer(cfg.buffer_size, cfg.n_obj, cfg.n_bg, seed=cfg.seed)
@@ -229,6 +240,10 @@ class Trainer:
                             "episodes": self.episodes,
                             "wall_s": now - t_start,
                             "updates_per_s": ups,
+                            # peak resident memory of this process so far (Linux reports KiB)
+                            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                            "replay_bytes_per_transition": self.buffer.bytes_per_transition,
+                            "replay_size": len(self.buffer),
                             "success_recent": float(np.mean(self.recent_success))
                             if self.recent_success
                             else None,
@@ -316,5 +331,5 @@ def load_policy_from_checkpoint(path: Path, seed: int) -> LoadedPolicy:
     agent, cfg, _ = load_agent(path)
     policy = agent_policy(agent, "eval", torch.Generator().manual_seed(seed))
     return LoadedPolicy(
-        policy, cfg.n_obj, cfg.n_bg, agent.motion_policy.stochastic_eval, f"{cfg.algo} ({path})"
+        policy, cfg.n_obj, cfg.n_bg, agent.motion_policy.stochastic_eval, f"{cfg.algo} ({path})", cfg.algo
     )

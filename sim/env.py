@@ -18,7 +18,11 @@ Episode end
 Arguments (``gymnasium.make("hydo/Bin-v0", ...)``)
     ``objects`` (split name, object name or mesh folder), ``goals`` (``planar`` | ``6d``), ``obs``
     (``mesh`` | ``render``), ``clutter`` (0, 1, 2 or 5 extra objects in the background cloud),
-    ``n_obj``, ``n_bg`` (point counts), ``max_steps``.
+    ``n_obj``, ``n_bg`` (point counts), ``max_steps``; ``task`` (``sim.tasks``: ``push-line`` |
+    ``push-align``, the behaviour-diversity variants; they fix the object, goal and obstacles) and
+    ``task_start`` (``fixed``: the task's fixed start pose, for evaluation; ``random``: its training
+    start region). With a task, ``info["behaviour"]`` holds the episode's behaviour id (or None) on
+    the step that ends it.
 Starting state
     A random stable pose of a random object, with random yaw and bin position; ``planar`` goals
     translate it (same orientation), ``6d`` goals pick another random stable pose, yaw and position.
@@ -45,6 +49,7 @@ from sim.objects import ObjectAsset, load_objects
 from sim.observe import MeshObserver
 from sim.primitive import SIM_WORKSPACE, PrimitiveRejected, check_plan, primitive_waypoints
 from sim.scene import BinScene
+from sim.tasks import TaskStep, get_task
 
 CLUTTER_CHOICES = (0, 1, 2, 5)
 MIN_GOAL_DISTANCE_M = 0.05  # a goal must start further than the success threshold (with margin)
@@ -63,6 +68,8 @@ class BinEnv(gym.Env):
         n_bg: int = DEFAULT_N_BG,
         max_steps: int = MAX_PRIMITIVES,
         render_mode: str | None = None,
+        task: str | None = None,
+        task_start: str = "fixed",
     ):
         if goals not in GOAL_MODES:
             raise ValueError(f"`goals` must be one of {list(GOAL_MODES)}. Got {goals!r}.")
@@ -70,6 +77,17 @@ class BinEnv(gym.Env):
             raise ValueError(f"`clutter` must be one of {list(CLUTTER_CHOICES)}. Got {clutter!r}.")
         if obs not in ("mesh", "render"):
             raise ValueError(f"`obs` must be one of ['mesh', 'render']. Got {obs!r}.")
+        self.task = None if task is None else get_task(task)  # behaviour-diversity variant (sim.tasks)
+        if self.task is not None:
+            if task_start not in ("fixed", "random"):
+                raise ValueError(f"`task_start` must be one of ['fixed', 'random']. Got {task_start!r}.")
+            if clutter:
+                raise ValueError(
+                    f"`clutter` must be 0 with a task (its obstacles are the scene). Got {clutter!r}."
+                )
+            objects = self.task.object
+        self.task_start = task_start
+        self._trajectory: list[TaskStep] = []
         self.assets = load_objects(objects) if isinstance(objects, str) else tuple(objects)
         if not self.assets:
             raise ValueError("no objects to train or evaluate on")
@@ -106,7 +124,7 @@ class BinEnv(gym.Env):
         if key not in self._scenes:
             if len(self._scenes) > 64:  # clutter makes many combinations: keep memory bounded
                 self._scenes.clear()
-            self._scenes[key] = BinScene(asset, clutter)
+            self._scenes[key] = BinScene(asset, clutter, self.task.obstacles if self.task else ())
         return self._scenes[key]
 
     def _observe(self) -> dict[str, np.ndarray]:
@@ -138,6 +156,8 @@ class BinEnv(gym.Env):
         super().reset(seed=seed)
         rng = self.np_random
         options = options or {}
+        if self.task is not None:
+            return self._reset_task(rng)
         if "object" in options:
             by_name = {a.name: a for a in self.assets}
             asset = by_name[options["object"]]
@@ -175,6 +195,25 @@ class BinEnv(gym.Env):
         _, _, dist = self._evaluate()
         return self._observe(), {"object": asset.name, "distance": dist, "success": False}
 
+    def _reset_task(self, rng):
+        """A task's start (fixed, or random in its start region) and goal; see ``sim.tasks``."""
+        self.scene = self._get_scene(self.assets[0], ())
+        self.scene.reset()
+        pos, quat = self.task.start_pose(rng if self.task_start == "random" else None)
+        self.scene.set_object_pose(pos, quat)
+        self.scene.settle(max_s=0.5)
+        self._set_task_goal()
+        self._steps = 0
+        self._trajectory = []
+        _, _, dist = self._evaluate()
+        return self._observe(), {"object": self.scene.asset.name, "distance": dist, "success": False}
+
+    def _set_task_goal(self) -> None:
+        gpos, gquat = self.task.goal(*self.scene.object_pose())
+        self.T_goal = pose_matrix(gpos, gquat)
+        self.scene.set_goal_ghost(gpos, gquat)
+        self.goal_pose = (gpos, gquat)
+
     def step(self, action):
         if self._obs is None:
             raise RuntimeError("call reset() before step()")
@@ -187,6 +226,7 @@ class BinEnv(gym.Env):
             raise ValueError("action motion contains NaN or inf")
         point = self._obs["points"][index]
         normal = self._obs["normals"][index]
+        pose_before = np.concatenate(self.scene.object_pose())
         waypoints = primitive_waypoints(point, normal, motion)
         rejected, reason, steps = False, "", 0
         try:
@@ -197,6 +237,18 @@ class BinEnv(gym.Env):
             result = self.scene.execute_primitive(waypoints)
             rejected, reason, steps = not result.executed, result.reason, result.physics_steps
         self._steps += 1
+        if self.task is not None:
+            self._trajectory.append(
+                TaskStep(
+                    point.copy(),
+                    motion.copy(),
+                    not rejected,
+                    pose_before,
+                    np.concatenate(self.scene.object_pose()),
+                )
+            )
+            if self.task.goal_follows_object:
+                self._set_task_goal()
         reward, success, dist = self._evaluate()
         left_bin = not self.scene.object_in_bin()
         terminated = bool(success or left_bin)
@@ -212,6 +264,8 @@ class BinEnv(gym.Env):
             "physics_steps": steps,
             "waypoints": waypoints,
         }
+        if self.task is not None and (terminated or truncated):
+            info["behaviour"] = self.task.behaviour(self._trajectory)
         return self._observe(), float(reward), terminated, truncated, info
 
     def render(self):

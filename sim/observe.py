@@ -66,4 +66,5 @@ class MeshObserver:
         bg = [bin_background_points()]
         for i, c in enumerate(scene.clutter):
             bg.append(visible_surface(c.surface_points, c.surface_normals, scene.object_T(f"clutter{i}"))[0])
+        bg.extend(ob.surface_points() for ob in getattr(scene, "obstacles", ()))  # static task boxes
         return obj_p, obj_n, np.concatenate(bg) if len(bg) > 1 else bg[0]

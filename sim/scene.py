@@ -108,13 +108,31 @@ def _add_object_body(spec, prefix: str, asset: ObjectAsset, rgba, mocap=False) -
             )
 
 
-def build_model(asset: ObjectAsset, clutter: tuple[ObjectAsset, ...] = ()) -> mujoco.MjModel:
-    """Compile bin + hand + ``asset`` (body ``object``) + clutter (bodies ``clutter{i}``) + goal ghost."""
+def _add_obstacle_body(spec, name: str, obstacle) -> None:
+    """A static box (``sim.tasks.Obstacle``: ``centre``, ``half_size``) welded to the world, group 0."""
+    body = spec.worldbody.add_body(name=name, pos=list(obstacle.centre))
+    body.add_geom(
+        name=f"{name}_geom",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=list(obstacle.half_size),
+        friction=list(OBJECT_FRICTION),
+        rgba=[0.95, 0.95, 0.95, 1.0],
+        group=0,
+    )
+
+
+def build_model(
+    asset: ObjectAsset, clutter: tuple[ObjectAsset, ...] = (), obstacles: tuple = ()
+) -> mujoco.MjModel:
+    """Compile bin + hand + ``asset`` (body ``object``) + clutter (bodies ``clutter{i}``) + static
+    obstacles (bodies ``obstacle{i}``, ``sim.tasks``) + goal ghost."""
     spec = mujoco.MjSpec.from_file(str(ASSETS / "scene.xml"))
     _add_hand_visuals(spec)
     _add_object_body(spec, "object", asset, rgba=[0.85, 0.35, 0.2, 1.0])
     for i, c in enumerate(clutter):
         _add_object_body(spec, f"clutter{i}", c, rgba=[0.35, 0.25, 0.15, 1.0])
+    for i, ob in enumerate(obstacles):
+        _add_obstacle_body(spec, f"obstacle{i}", ob)
     _add_object_body(spec, "goal", asset, rgba=[0.2, 0.8, 0.3, 0.35], mocap=True)
     return spec.compile()
 
@@ -125,10 +143,11 @@ class BinScene:
     Used by the gymnasium env (training, eval), goal generation and the deploy twin's object.
     """
 
-    def __init__(self, asset: ObjectAsset, clutter: tuple[ObjectAsset, ...] = ()):
+    def __init__(self, asset: ObjectAsset, clutter: tuple[ObjectAsset, ...] = (), obstacles: tuple = ()):
         self.asset = asset
         self.clutter = clutter
-        self.model = build_model(asset, clutter)
+        self.obstacles = tuple(obstacles)  # static boxes of a task (``sim.tasks.Obstacle``)
+        self.model = build_model(asset, clutter, self.obstacles)
         self.data = mujoco.MjData(self.model)
         m = self.model
         self.hand_qadr = np.array([m.jnt_qposadr[m.joint(f"hand_{a}").id] for a in "xyz"])

@@ -38,8 +38,9 @@ def test_eval_heuristic_writes_json(tmp_path):
     r = hydo("eval", "heuristic", "--objects", "cube", "--episodes", "3", "--json", str(out))
     assert r.returncode == 0, r.stderr
     data = json.loads(out.read_text())
-    assert data["episodes"] == 3 and 0.0 <= data["success_rate"] <= 1.0
-    assert len(data["episodes_detail"]) == 3 and data["stochastic"] is False
+    run = data["runs"][0]  # one entry per TARGET (tests/test_eval.py covers the rest of the schema)
+    assert data["episodes"] == 3 and 0.0 <= run["success_rate"] <= 1.0
+    assert len(run["episodes_detail"]) == 3 and run["stochastic"] is False
 
 
 def test_eval_video(tmp_path):

@@ -1,0 +1,193 @@
+"""``hydo eval``: several runs, IQM [CI] across them, JSON / Markdown, --compare, --task, bad targets."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from hydo_cli.evaluate import aggregate, compare_rows, failure_counts
+from hydo_cli.main import app
+from hydo_cli.rollout import EpisodeResult
+
+runner = CliRunner()
+
+
+def hydo(*args, cwd=None):
+    """The real console entry point in a subprocess (known errors -> one stderr line)."""
+    return subprocess.run(
+        [sys.executable, "-c", "from hydo_cli.main import main; main()", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=300,
+    )
+
+
+def ep(success, failure="", rejected=0, obj="cube"):
+    return EpisodeResult(obj, success, 3, -0.1, 0.01, rejected, failure)
+
+
+def test_failure_reasons_count_timeouts_with_refused_primitives_twice():
+    results = [
+        ep(True, rejected=2),  # refused primitives in a success: not a failure
+        ep(False, "timeout", rejected=3),
+        ep(False, "timeout"),
+        ep(False, "object_left_bin", rejected=1),
+    ]
+    assert failure_counts(results) == {"object_left_bin": 1, "timeout": 2, "primitive_rejected": 2}
+
+
+def test_multi_target_eval_writes_json_and_markdown(tmp_path):
+    js, md = tmp_path / "out" / "eval.json", tmp_path / "eval.md"
+    r = runner.invoke(
+        app,
+        [
+            "eval",
+            "heuristic",
+            "random",
+            "--objects",
+            "cube",
+            "--episodes",
+            "3",
+            "--json",
+            str(js),
+            "--markdown",
+            str(md),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    data = json.loads(js.read_text())
+    assert [run["target"] for run in data["runs"]] == ["heuristic", "random"]
+    for run in data["runs"]:
+        assert 0.0 <= run["success_rate"] <= 1.0 and run["episodes"] == 3 and len(run["episodes_detail"]) == 3
+        assert set(run["failures"]) == {"object_left_bin", "timeout", "primitive_rejected"}
+        assert set(run["per_object"]) == {"cube"} and run["episodes_per_s"] > 0
+    assert data["runs"][0]["stochastic"] is False and data["runs"][1]["stochastic"] is True
+    # 2 runs: the IQM is their mean, its CI bootstraps episodes within each run
+    rates = [run["success_rate"] for run in data["runs"]]
+    assert data["iqm"] == pytest.approx(np.mean(rates))
+    assert data["ci_low"] <= data["iqm"] <= data["ci_high"]
+    assert (
+        data["aggregate"]["all"]["ci_over"] == "episodes"
+        and "trims nothing" in data["aggregate"]["all"]["note"]
+    )
+    text = md.read_text()
+    assert "| run | method | success |" in text and "| heuristic |" in text and "| random |" in text
+    assert "IQM" in text and not list(tmp_path.glob("**/.*.tmp"))  # atomic writes leave no temp files
+
+
+def test_compare_lays_out_table_one(tmp_path):
+    js, md = tmp_path / "t1.json", tmp_path / "t1.md"
+    r = runner.invoke(
+        app,
+        [
+            "eval",
+            "random",
+            "heuristic",
+            "--compare",
+            "--episodes",
+            "2",
+            "--json",
+            str(js),
+            "--markdown",
+            str(md),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    data = json.loads(js.read_text())
+    assert data["splits"] == ["unseen-category", "unseen-instance", "train"]
+    assert len(data["runs"]) == 6 and {run["objects"] for run in data["runs"]} == set(data["splits"])
+    methods = data["aggregate"]["methods"]
+    assert list(methods) == ["heuristic", "random"]  # Table I order, not argument order
+    for m in methods.values():
+        assert set(m["splits"]) == set(data["splits"])
+        assert all({"iqm", "ci_low", "ci_high"} <= set(c) for c in m["splits"].values())
+    text = md.read_text()
+    assert "| Method | Unseen Category | Unseen Instance | Training Objects | Runs |" in text
+    table = text.split("| Method |")[1].split("\n\n")[0].splitlines()
+    assert table[2].startswith("| heuristic | ") and table[3].startswith("| random | ")
+    assert "Table I" in r.output
+
+
+def test_compare_groups_runs_by_method_in_paper_order():
+    def run(target, method, successes, split="train"):
+        detail = [{"success": bool(s), "behaviour": None} for s in successes]
+        return {"target": target, "method": method, "objects": split, "episodes_detail": detail}
+
+    runs = [run(f"hydo-s{i}", "hydo", [1, 1, 0, i % 2]) for i in range(4)] + [
+        run("hacman-s0", "hacman", [0, 0, 1, 0])
+    ]
+    agg = aggregate(runs, ["train"], seed=0)
+    assert list(agg["methods"]) == ["hacman", "hydo"]
+    hydo_train = agg["methods"]["hydo"]["splits"]["train"]
+    assert hydo_train["ci_over"] == "runs" and hydo_train["iqm"] == pytest.approx(
+        0.625
+    )  # scores .5 .75 .5 .75
+    assert agg["methods"]["hacman"]["splits"]["train"]["iqm"] == pytest.approx(0.25)
+    header, rows = compare_rows({"task": None, "splits": ["train"], "aggregate": agg})
+    assert header == ["Method", "Training Objects", "Runs"]
+    assert rows[0][0] == "HACMan" and rows[1][0] == "HyDo" and rows[1][2] == "4"
+
+
+def test_task_eval_reports_behaviour_entropy(tmp_path):
+    js = tmp_path / "line.json"
+    r = runner.invoke(app, ["eval", "heuristic", "--task", "push-line", "--episodes", "3", "--json", str(js)])
+    assert r.exit_code == 0, r.output
+    data = json.loads(js.read_text())
+    run = data["runs"][0]
+    assert data["task"]["name"] == "push-line" and data["task"]["n_behaviours"] == 24
+    assert run["behaviour_entropy"] == 0.0 and run["behaviour_counts"] == {"18": 3}  # one behaviour
+    assert data["aggregate"]["behaviour_entropy"]["iqm"] == 0.0
+    assert "entropy" in r.output
+
+
+def bad_targets(tmp_path):
+    (tmp_path / "corrupt.pt").write_bytes(b"not a checkpoint")
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "readme.txt").write_text("hello")
+    model = tmp_path / "model"
+    model.mkdir()
+    keys = "format obs_contract_version algo n_obj n_bg feature_dim denoise_steps noise_per_point"
+    keys += " noise_schedule q_reduction stochastic training_command sha256"
+    manifest = dict.fromkeys(keys.split(), 0) | {"format": "hydo-onnx/1", "obs_contract_version": 999}
+    (model / "manifest.json").write_text(json.dumps(manifest))
+
+
+@pytest.mark.parametrize(
+    "targets, message",
+    [
+        (["corrupt.pt"], "corrupt"),
+        (["notes"], "neither checkpoint.pt"),
+        (["model"], "observation contract v999"),
+        (["heuristic", "no/such/run"], "no/such/run"),  # every target loads before any episode runs
+    ],
+)
+def test_bad_target_is_one_line_and_exit_1(targets, message, tmp_path):
+    bad_targets(tmp_path)
+    r = hydo("eval", *targets, "--objects", "cube", "--episodes", "1", cwd=tmp_path)
+    assert r.returncode == 1, r.stderr
+    assert "Traceback" not in r.stderr and message in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "success" not in r.stdout  # nothing was evaluated
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["heuristic", "heuristic"], "given twice"),
+        (["heuristic", "--compare", "--objects", "cube"], "drop --objects"),
+        (["heuristic", "--task", "push-line", "--goals", "6d"], "drop --objects/--goals/--clutter"),
+        (["heuristic", "random", "--video", "v.mp4"], "one TARGET"),
+    ],
+)
+def test_contradictory_flags_are_refused(args, message, monkeypatch, capsys):
+    from hydo_cli.main import main
+
+    monkeypatch.setattr(sys, "argv", ["hydo", "eval", *args])
+    with pytest.raises(SystemExit) as e:
+        main()
+    err = capsys.readouterr().err
+    assert e.value.code == 1 and message in err and len(err.strip().splitlines()) == 1
