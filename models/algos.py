@@ -1,0 +1,673 @@
+"""The six algorithms as one table of choices, and the hybrid agent that runs any row of it.
+
+Paper: Le et al., "HyDo: Hybrid Diffusion Policy" (reference/hydo-paper.tex §III-C, §IV). Baseline:
+Zhou et al., "HACMan" (HACMan-2023/HACMan: ``hacman/algos/hacman_td3.py``, ``location_policy.py``).
+
+=============  ===========  ========  =====================  =====================
+``--algo``     paper name   critic    motion policy          entropy
+=============  ===========  ========  =====================  =====================
+hacman         HACMan       td3       tanh MLP               none (ε-greedy loc.)
+hacman-diff    HACMan+Diff  td3       DDPM, K steps          none
+hacman-cm      HACMan+CM    td3       consistency, K steps   none
+hydo-gauss     HyDo w/o D.  sac       tanh-Gaussian          location + motion
+hydo           HyDo         sac       DDPM, K steps          location + chain bound
+hydo-cm        HyDo+CM      sac       consistency, K steps   location + chain bound
+=============  ===========  ========  =====================  =====================
+
+Everything is per point: the encoder gives features ``f_i`` for the object points, the motion policy
+proposes ``a_i`` at every object point, the twin critic scores ``Q(f_i, a_i)``, and the location policy
+is ``π_loc(i) = softmax(Q_i / β)`` over object points.
+
+Sharing (one encoder pass per observation per update; DrQ / SAC-AE style):
+  * the online encoder encodes s once, with grad; the critic loss alone trains it;
+  * the actor reads those features detached (``no_grad``), so actor gradients never move the encoder;
+  * s' is encoded once, under ``no_grad``, by the target encoder; both the motion policy (sampling
+    a') and the target critic read those features. Using the Polyak-averaged encoder for the policy
+    at s' keeps the whole target on slowly moving weights, as the target critic already is.
+  * the critic loss only needs the executed point, so the encoder's per-point head runs with grad on
+    those B rows and without grad on all object points (for the actor).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import math
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, fields
+from typing import Any, NamedTuple
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from models.common import check_shape, polyak_update
+from models.encoder import PointEncoder
+from models.heads import TwinQ, location_policy
+from models.motion import (
+    CHAIN_ENTROPY,
+    MOTION_DIM,
+    ConsistencySchedule,
+    DDPMSchedule,
+    MotionPolicy,
+    default_target_entropy,
+    make_motion_policy,
+)
+from models.replay import ReplayBatch
+
+
+@dataclass(frozen=True)
+class AlgoSpec:
+    """One row of the algorithm table."""
+
+    paper_name: str
+    objective: str  # "td3" | "sac"
+    motion: str  # "tanh" | "gauss" | "ddpm" | "cm"
+    entropy: str  # "none" | "location+motion" | "location+chain"
+
+
+ALGOS: dict[str, AlgoSpec] = {
+    "hacman": AlgoSpec("HACMan", "td3", "tanh", "none"),
+    "hacman-diff": AlgoSpec("HACMan + Diff", "td3", "ddpm", "none"),
+    "hacman-cm": AlgoSpec("HACMan + CM", "td3", "cm", "none"),
+    "hydo-gauss": AlgoSpec("HyDo (w/o Diff)", "sac", "gauss", "location+motion"),
+    "hydo": AlgoSpec("HyDo", "sac", "ddpm", "location+chain"),
+    "hydo-cm": AlgoSpec("HyDo + CM", "sac", "cm", "location+chain"),
+}
+
+MODES = ("explore", "eval")
+AGENT_FORMAT = "hydo-agent/1"
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """Everything that defines a hybrid agent; recorded with every run and checkpoint."""
+
+    algo: str = "hydo"
+    """Which row of the algorithm table (``ALGOS``)."""
+    n_obj: int = 128
+    """Object points per observation (fixed per model)."""
+    n_bg: int = 128
+    """Background points per observation (fixed per model)."""
+    seed: int = 0
+    """Seeds network initialisation and the agent's own update-noise generator."""
+
+    # encoder
+    feature_dim: int = 64
+    """D, per-point feature size shared by the motion policy and the critic."""
+    encoder_hidden: int = 64
+    """Width of the encoder's per-point MLPs."""
+    encoder_global: int = 64
+    """Width of each max-pooled global feature (object, background)."""
+    encoder_knn: int = 0
+    """Neighbours of the optional EdgeConv layer over object points (0 = plain PointNet)."""
+    length_scale: float = 0.1
+    """Metres per network unit for positions and goal flow inside the encoder."""
+
+    # heads
+    actor_hidden: int = 64
+    """Width of the motion policy / denoiser MLP."""
+    critic_hidden: int = 64
+    """Width of each Q head."""
+    critic_layer_norm: bool = False
+    """LayerNorm after the Q heads' first layer (off by default: ~2 ms of a ~30 ms update)."""
+
+    # motion chains (ddpm / cm)
+    denoise_steps: int = 5
+    """K, steps of the DDPM or consistency chain."""
+    chain_entropy: str = "bound"
+    """Motion log-prob estimator of the chains: "bound" (DIME variational bound with the fixed forward
+    kernel) or "learned_std" (path density with a learned, bounded per-step std)."""
+    final_std: float = 0.05
+    """Std of the chain's last step (DDPM σ_1; the consistency model's explicit final Gaussian)."""
+    learned_std_min: float = 0.01
+    """Lower bound of the per-step std when ``chain_entropy="learned_std"``."""
+    learned_std_max: float = 1.0
+    """Upper bound of the per-step std when ``chain_entropy="learned_std"``."""
+    ddpm_beta_min: float = 0.1
+    """VP schedule β_min of the DDPM chain."""
+    ddpm_beta_max: float = 10.0
+    """VP schedule β_max of the DDPM chain."""
+    cm_sigma_max: float = 5.0
+    """First noise level T of the consistency chain."""
+    cm_sigma_min: float = 0.002
+    """Boundary time ε of the consistency function."""
+    cm_sigma_data: float = 0.5
+    """σ_data of the consistency parameterisation."""
+    cm_rho: float = 7.0
+    """ρ of the consistency chain's level spacing."""
+
+    # shared RL
+    gamma: float = 0.99
+    """Discount per primitive."""
+    tau: float = 0.005
+    """Polyak rate of the target networks."""
+    lr_critic: float = 3e-4
+    """Adam learning rate of encoder + critic."""
+    lr_actor: float = 3e-4
+    """Adam learning rate of the motion policy."""
+    policy_delay: int | None = None
+    """Critic updates per actor update (None: td3 → 2 as in TD3, sac → 1)."""
+    actor_points: int | None = 16
+    """Points per state differentiated in the actor loss, drawn from π_loc (None = all points, exact
+    gradient; m = unbiased estimate after a no-grad scoring pass over all points, see ``update``)."""
+
+    # td3 (HACMan)
+    location_beta: float = 0.1
+    """Fixed location softmax temperature β of the td3 variants (HACMan's --location_model_temperature)."""
+    epsilon_greedy: float = 0.1
+    """Probability of a uniformly random location when exploring (td3; HACMan's --egreedy)."""
+    explore_motion_std: float = 0.1
+    """Std of the Gaussian noise added to the executed motion when exploring (td3)."""
+    target_policy_noise: float = 0.2
+    """Std of TD3's target policy smoothing noise."""
+    target_noise_clip: float = 0.5
+    """Clip of TD3's target policy smoothing noise."""
+
+    # sac (HyDo)
+    lr_alpha: float = 3e-4
+    """Adam learning rate of the two log-temperatures."""
+    init_alpha_loc: float = 0.1
+    """Initial location temperature α_loc (also π_loc's softmax temperature); HACMan's fixed β."""
+    init_alpha_motion: float = 0.01
+    """Initial motion temperature α_motion (rewards are metres, ~0.01–0.1 per primitive)."""
+    target_entropy_loc: float | None = None
+    """Target location entropy in nats (None: ½·log N_obj, i.e. ≈ √N_obj equally likely points)."""
+    target_entropy_motion: float | None = None
+    """Target of the motion log-prob estimate in nats (None: ``motion.default_target_entropy``: −3 for
+    gauss, −3·(1 + log(s_1/final_std)) for the chain bound, −3·K for learned_std)."""
+
+    def __post_init__(self) -> None:
+        def check(ok: bool, msg: str) -> None:
+            if not ok:
+                raise ValueError(msg)
+
+        check(self.algo in ALGOS, f"`algo` must be one of {list(ALGOS)}. Got {self.algo}.")
+        check(
+            self.chain_entropy in CHAIN_ENTROPY,
+            f"`chain_entropy` must be one of {list(CHAIN_ENTROPY)}. Got {self.chain_entropy}.",
+        )
+        check(self.n_obj >= 1, f"`n_obj` must be ≥ 1. Got {self.n_obj}.")
+        check(self.n_bg >= 0, f"`n_bg` must be ≥ 0. Got {self.n_bg}.")
+        check(self.denoise_steps >= 1, f"`denoise_steps` must be ≥ 1. Got {self.denoise_steps}.")
+        check(0 < self.gamma <= 1, f"`gamma` must be in (0, 1]. Got {self.gamma}.")
+        check(0 < self.tau <= 1, f"`tau` must be in (0, 1]. Got {self.tau}.")
+        check(
+            0 <= self.epsilon_greedy <= 1, f"`epsilon_greedy` must be in [0, 1]. Got {self.epsilon_greedy}."
+        )
+        check(self.location_beta > 0, f"`location_beta` must be > 0. Got {self.location_beta}.")
+        check(self.init_alpha_loc > 0, f"`init_alpha_loc` must be > 0. Got {self.init_alpha_loc}.")
+        check(self.init_alpha_motion > 0, f"`init_alpha_motion` must be > 0. Got {self.init_alpha_motion}.")
+        check(
+            self.policy_delay is None or self.policy_delay >= 1,
+            f"`policy_delay` must be None or ≥ 1. Got {self.policy_delay}.",
+        )
+        check(
+            self.actor_points is None or self.actor_points >= 1,
+            f"`actor_points` must be None or ≥ 1. Got {self.actor_points}.",
+        )
+        for name in ("feature_dim", "encoder_hidden", "encoder_global", "actor_hidden", "critic_hidden"):
+            check(getattr(self, name) >= 1, f"`{name}` must be ≥ 1. Got {getattr(self, name)}.")
+
+    @property
+    def spec(self) -> AlgoSpec:
+        """The algorithm table row of ``algo``."""
+        return ALGOS[self.algo]
+
+    @property
+    def resolved_policy_delay(self) -> int:
+        """``policy_delay`` with the objective's default filled in."""
+        if self.policy_delay is not None:
+            return self.policy_delay
+        return 2 if self.spec.objective == "td3" else 1
+
+    @property
+    def resolved_target_entropy_loc(self) -> float:
+        """``target_entropy_loc`` with the default ½·log N_obj filled in."""
+        if self.target_entropy_loc is not None:
+            return self.target_entropy_loc
+        return 0.5 * math.log(self.n_obj)
+
+    @property
+    def resolved_target_entropy_motion(self) -> float:
+        """``target_entropy_motion`` with the motion policy's default filled in."""
+        if self.target_entropy_motion is not None:
+            return self.target_entropy_motion
+        return default_target_entropy(
+            self.spec.motion, self.chain_entropy, self.ddpm_schedule(), self.cm_schedule()
+        )
+
+    def ddpm_schedule(self) -> DDPMSchedule:
+        """The DDPM noise schedule these fields describe."""
+        return DDPMSchedule(
+            n_steps=self.denoise_steps,
+            beta_min=self.ddpm_beta_min,
+            beta_max=self.ddpm_beta_max,
+            final_std=self.final_std,
+        )
+
+    def cm_schedule(self) -> ConsistencySchedule:
+        """The consistency sampler's schedule these fields describe."""
+        return ConsistencySchedule(
+            n_steps=self.denoise_steps,
+            sigma_max=self.cm_sigma_max,
+            sigma_min=self.cm_sigma_min,
+            final_std=self.final_std,
+            sigma_data=self.cm_sigma_data,
+            rho=self.cm_rho,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict of the fields plus the resolved defaults and the table row (for run records)."""
+        d = asdict(self)
+        d["resolved"] = {
+            "policy_delay": self.resolved_policy_delay,
+            "target_entropy_loc": self.resolved_target_entropy_loc,
+            "target_entropy_motion": self.resolved_target_entropy_motion,
+            **asdict(self.spec),
+        }
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> AgentConfig:
+        """Inverse of :meth:`to_dict` (ignores the ``resolved`` record)."""
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names - {"resolved"}
+        if unknown:
+            raise ValueError(f"unknown AgentConfig fields: {sorted(unknown)}")
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+@contextlib.contextmanager
+def frozen(module: nn.Module) -> Iterator[None]:
+    """Stop gradients into ``module``'s parameters (they still flow to its inputs).
+
+    The actor loss differentiates the critic w.r.t. the actions only; without this, backward would
+    also compute (and then discard) every critic weight gradient.
+    """
+    params = [p for p in module.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
+
+
+class SurrogateWeights(NamedTuple):
+    """Per-point quantities of the actor objective, computed without grad."""
+
+    coef: torch.Tensor  # (B, N_obj) c_i, the weight of ∇Q_i in the actor gradient
+    loss: torch.Tensor  # (B,) Σ_i π_loc(i) J_i, the actor loss value per state
+
+
+def actor_surrogate_weights(
+    q: torch.Tensor,
+    log_prob: torch.Tensor,
+    alpha_loc: torch.Tensor | float,
+    alpha_motion: torch.Tensor | float,
+    sac: bool,
+) -> SurrogateWeights:
+    """Weights of the unbiased point-subset estimator of the actor gradient.
+
+    ``q (B, N)`` the actor's Q at each point's sampled motion, ``log_prob (B, N)`` its log-prob
+    estimate, β = ``alpha_loc`` the location temperature. With ``π = softmax(Q/β)`` and
+    ``J_i = −Q_i + β log π_i + α_m log π_m,i`` (SAC; ``−Q_i`` for TD3), ``L = Σ_i π_i J_i`` has
+
+        ∇L = Σ_i ∇π_i J_i + Σ_i π_i ∇J_i
+           = Σ_i π_i [ (J_i − J̄)/β · ∇Q_i − ∇Q_i + α_m ∇log π_m,i ]        (J̄ = Σ_j π_j J_j)
+
+    using ``∇π_i = π_i (∇Q_i − Σ_j π_j ∇Q_j)/β`` and ``Σ_i π_i ∇log π_i = 0``. So for i ∼ π the
+    surrogate ``c_i Q_i + α_m log π_m,i`` with ``c_i = (J_i − J̄)/β − 1`` held constant has expected
+    gradient ∇L: differentiating m points drawn from π_loc is an unbiased estimate.
+    """
+    pi, log_pi = location_policy(q, alpha_loc)  # (B, N)
+    j = -q + alpha_loc * log_pi + alpha_motion * log_prob if sac else -q  # (B, N)
+    j_bar = (pi * j).sum(-1, keepdim=True)  # (B, 1)
+    return SurrogateWeights(coef=(j - j_bar) / alpha_loc - 1.0, loss=j_bar.squeeze(-1))
+
+
+class HybridAgent:
+    """Hybrid location/motion actor-critic for any row of ``ALGOS``.
+
+    Observations: ``points (B, N, 3)`` float32 metres (world frame, object points first, N = n_obj +
+    n_bg) and ``features (B, N, 4)`` ``[is_object, goal_flow_xyz (m)]``. Actions: ``index (B,)`` int64
+    into the object points and ``motion (B, 3)`` in [-1, 1].
+    """
+
+    def __init__(self, config: AgentConfig) -> None:
+        self.config = config
+        spec = config.spec
+        self.spec = spec
+        self.is_sac = spec.objective == "sac"
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(config.seed)
+            self.encoder = PointEncoder(
+                config.n_obj,
+                config.n_bg,
+                out_dim=config.feature_dim,
+                hidden=config.encoder_hidden,
+                global_dim=config.encoder_global,
+                knn=config.encoder_knn,
+                length_scale=config.length_scale,
+            )
+            self.critic = TwinQ(config.feature_dim, config.critic_hidden, config.critic_layer_norm)
+            self.motion_policy: MotionPolicy = make_motion_policy(
+                spec.motion,
+                config.feature_dim,
+                config.actor_hidden,
+                entropy=config.chain_entropy,
+                std_min=config.learned_std_min,
+                std_max=config.learned_std_max,
+                ddpm=config.ddpm_schedule(),
+                cm=config.cm_schedule(),
+            )
+        self.encoder_target = copy.deepcopy(self.encoder).requires_grad_(False)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        # TD3 keeps a target policy; SAC samples the current policy at s'.
+        self.motion_policy_target = (
+            None if self.is_sac else copy.deepcopy(self.motion_policy).requires_grad_(False)
+        )
+        self.critic_optimizer = torch.optim.Adam(
+            [*self.encoder.parameters(), *self.critic.parameters()], lr=config.lr_critic, fused=True
+        )
+        self.actor_optimizer = torch.optim.Adam(
+            self.motion_policy.parameters(), lr=config.lr_actor, fused=True
+        )
+        if self.is_sac:
+            self.log_alpha_loc = torch.tensor(math.log(config.init_alpha_loc), requires_grad=True)
+            self.log_alpha_motion = torch.tensor(math.log(config.init_alpha_motion), requires_grad=True)
+            self.alpha_optimizer: torch.optim.Optimizer | None = torch.optim.Adam(
+                [self.log_alpha_loc, self.log_alpha_motion], lr=config.lr_alpha, fused=True
+            )
+        else:
+            self.alpha_optimizer = None
+        self.n_updates = 0
+        self.generator = torch.Generator().manual_seed(config.seed + 1)  # update noise only
+
+    # ------------------------------------------------------------------ helpers
+    def _randn(self, *shape: int) -> torch.Tensor:
+        return torch.randn(shape, generator=self.generator)
+
+    @property
+    def alpha_loc(self) -> float:
+        """Current location temperature (SAC) or the fixed β (TD3)."""
+        return self.log_alpha_loc.exp().item() if self.is_sac else self.config.location_beta
+
+    @property
+    def alpha_motion(self) -> float:
+        """Current motion temperature (SAC; 0 for TD3)."""
+        return self.log_alpha_motion.exp().item() if self.is_sac else 0.0
+
+    def num_parameters(self) -> int:
+        """Trainable parameters of encoder, critic and motion policy (targets excluded)."""
+        mods = (self.encoder, self.critic, self.motion_policy)
+        return sum(p.numel() for m in mods for p in m.parameters())
+
+    def _check_obs(self, points: torch.Tensor, features: torch.Tensor) -> None:
+        n = self.config.n_obj + self.config.n_bg
+        check_shape("points", points, (None, n, 3), torch.float32)
+        check_shape("features", features, (points.shape[0], n, 4), torch.float32)
+
+    # ------------------------------------------------------------------ acting
+    @torch.no_grad()
+    def act(
+        self,
+        points: torch.Tensor,
+        features: torch.Tensor,
+        mode: str = "explore",
+        generator: torch.Generator | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """Choose ``(index (B,) int64, motion (B, 3) in [-1, 1])`` for a batch of observations.
+
+        ``points (B, N, 3)`` float32 metres, ``features (B, N, 4)``. ``mode``:
+
+        * ``"explore"``: location sampled from π_loc = softmax(Q / β) (SAC: β = α_loc; TD3: β =
+          ``location_beta`` and, with probability ``epsilon_greedy``, a uniform location, as HACMan);
+          motion sampled from the policy (TD3: plus Gaussian noise ``explore_motion_std``).
+        * ``"eval"``: location = argmax of Q over object points; motion from the policy without
+          exploration noise. Deterministic for tanh and gauss (``tanh(mean)``); **stochastic for ddpm
+          and cm**: the chain's noise is the policy (as in the paper's real-robot runs); pass a seeded
+          ``generator`` to reproduce it.
+
+        Q at each point is scored on the motion proposed at that point (TD3: Q1, as HACMan; SAC: the
+        twin minimum). ``info``: ``q (B, N_obj)``, ``location_probs (B, N_obj)``, ``motions (B, N_obj,
+        3)``, ``motion_log_prob (B,)`` (log-prob estimate of the chosen point's motion).
+        """
+        if mode not in MODES:
+            raise ValueError(f"`mode` must be one of {list(MODES)}. Got {mode}.")
+        self._check_obs(points, features)
+        cfg = self.config
+        f = self.encoder(points, features)  # (B, N_obj, D)
+        b, n = f.shape[:2]
+        noise = torch.randn(self.motion_policy.noise_shape(b, n), generator=generator)
+        deterministic = mode == "eval" and not self.motion_policy.stochastic_eval
+        motions, log_prob = self.motion_policy.sample(f, noise, deterministic=deterministic)  # (B, N_obj, 3)
+        q_twin = self.critic(f, motions)  # (B, N_obj, 2)
+        q = q_twin.amin(-1) if self.is_sac else q_twin[..., 0]  # (B, N_obj)
+        probs, _ = location_policy(q, self.alpha_loc)  # (B, N_obj)
+        if mode == "eval":
+            index = q.argmax(-1)  # (B,)
+        else:
+            index = torch.multinomial(probs, 1, generator=generator).squeeze(-1)  # (B,)
+            if not self.is_sac and cfg.epsilon_greedy > 0:
+                uniform = torch.randint(0, n, (b,), generator=generator)
+                explore_uniform = torch.rand(b, generator=generator) < cfg.epsilon_greedy
+                index = torch.where(explore_uniform, uniform, index)
+        rows = torch.arange(b)
+        motion = motions[rows, index]  # (B, 3)
+        if mode == "explore" and not self.is_sac and cfg.explore_motion_std > 0:
+            motion = (motion + cfg.explore_motion_std * torch.randn(b, 3, generator=generator)).clamp(-1, 1)
+        info = {"q": q, "location_probs": probs, "motions": motions, "motion_log_prob": log_prob[rows, index]}
+        return index, motion, info
+
+    # ------------------------------------------------------------------ learning
+    def update(self, batch: ReplayBatch) -> dict[str, float]:
+        """One gradient update (critic; actor and temperatures every ``policy_delay``; Polyak).
+
+        ``batch``: a :class:`~models.replay.ReplayBatch` (float32 tensors; see its fields for shapes).
+        Returns scalar diagnostics. Only ``terminated`` masks the bootstrap: a truncated transition
+        (primitive cap) still bootstraps from its real next observation.
+
+        Actor loss ``L = mean_s Σ_i π_loc(i) J_i`` over the object points, with
+        ``J_i = −Q_i + α_loc log π_loc(i) + α_motion log π_m(a_i)`` (SAC) or ``J_i = −Q1_i`` (TD3) and
+        the gradient through the softmax. With ``actor_points = m`` it is estimated without bias:
+        every point is scored without grad (chain + critic, forward only), then m points are drawn
+        from π_loc and only they are differentiated, using ``∇L = E_{i∼π_loc}[c_i ∇Q_i + α_motion ∇log
+        π_m(a_i)]`` with ``c_i = (J_i − Σ_j π_j J_j)/β − 1`` (see :func:`actor_surrogate_weights`).
+        """
+        cfg = self.config
+        self._check_obs(batch.points, batch.features)
+        self._check_obs(batch.next_points, batch.next_features)
+        b = batch.reward.shape[0]
+        check_shape("index", batch.index, (b,), torch.int64)
+        check_shape("motion", batch.motion, (b, MOTION_DIM))
+        for name in ("reward", "terminated", "truncated"):
+            check_shape(name, getattr(batch, name), (b,))
+        rows = torch.arange(b)
+        n_obj = cfg.n_obj
+        self.n_updates += 1
+        actor_step = self.n_updates % cfg.resolved_policy_delay == 0
+        subset = actor_step and cfg.actor_points is not None
+        alpha_loc = self.log_alpha_loc.exp().detach() if self.is_sac else cfg.location_beta
+        alpha_m = self.log_alpha_motion.exp().detach() if self.is_sac else 0.0
+        noise_shape = self.motion_policy.noise_shape
+        out: dict[str, float] = {}
+
+        # 1. Encode s once with grad. The per-point head runs with grad on the executed points only
+        #    and without grad on every object point (the actor's detached features).
+        ctx = self.encoder.encode_context(batch.points, batch.features)  # local (B, N_obj, H), context (B, H)
+        f_taken = self.encoder.head(ctx.local[rows, batch.index], ctx.context)  # (B, D)
+        with torch.no_grad():
+            f_obj = self.encoder.head(ctx.local, ctx.context[:, None])  # (B, N_obj, D), detached
+        noise_s = self._randn(*noise_shape(b, n_obj)) if actor_step else None  # (B, N_obj, S, 3)
+
+        # 2. Target: exact expectation over all object points of s' and a motion sampled at each.
+        with torch.no_grad():
+            f_next = self.encoder_target(batch.next_points, batch.next_features)  # (B, N_obj, D)
+            noise_next = self._randn(*noise_shape(b, n_obj))  # (B, N_obj, S, 3)
+            if self.is_sac:
+                # One chain call samples a' at s' and, when the actor is scored below, a at s.
+                if subset:
+                    a_all, logp_all = self.motion_policy.sample(
+                        torch.cat([f_next, f_obj]), torch.cat([noise_next, noise_s])
+                    )  # (2B, N_obj, 3), (2B, N_obj)
+                    a_next, logp_next, a_s, logp_s = a_all[:b], logp_all[:b], a_all[b:], logp_all[b:]
+                else:
+                    a_next, logp_next = self.motion_policy.sample(
+                        f_next, noise_next
+                    )  # (B, N_obj, 3), (B, N_obj)
+                q_next = self.critic_target(f_next, a_next).amin(-1)  # (B, N_obj): twin min
+                pi_next, log_pi_next = location_policy(q_next, alpha_loc)  # (B, N_obj)
+                soft_q = q_next - alpha_loc * log_pi_next - alpha_m * logp_next  # (B, N_obj)
+            else:
+                a_next, _ = self.motion_policy_target.sample(f_next, noise_next)  # (B, N_obj, 3)
+                smoothing = (self._randn(b, n_obj, MOTION_DIM) * cfg.target_policy_noise).clamp(
+                    -cfg.target_noise_clip, cfg.target_noise_clip
+                )
+                a_next = (a_next + smoothing).clamp(-1.0, 1.0)  # TD3 target policy smoothing
+                q_next = self.critic_target(f_next, a_next).amin(-1)  # (B, N_obj)
+                pi_next, _ = location_policy(q_next, alpha_loc)  # (B, N_obj), HACMan's fixed β
+                soft_q = q_next
+                if subset:
+                    a_s, logp_s = self.motion_policy.sample(f_obj, noise_s)  # (B, N_obj, 3), (B, N_obj)
+            v_next = (pi_next * soft_q).sum(-1)  # (B,)
+            target_q = batch.reward + cfg.gamma * (1.0 - batch.terminated) * v_next  # (B,)
+
+        # 3. Critic loss on the executed (index, motion); trains encoder + critic.
+        q_taken = self.critic(f_taken, batch.motion)  # (B, 2)
+        critic_loss = F.mse_loss(q_taken[:, 0], target_q) + F.mse_loss(q_taken[:, 1], target_q)
+        self.critic_optimizer.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_optimizer.step()
+        out.update(critic_loss=critic_loss.item(), q=q_taken.mean().item(), target_q=target_q.mean().item())
+
+        if actor_step:
+            # 4. Actor: L = mean_s Σ_i π_loc(i) J_i, gradient through the softmax (paper §III-C).
+            if subset:
+                # 4a. Score every object point without grad (with the just-updated critic).
+                with torch.no_grad():
+                    q_s = self._actor_q(f_obj, a_s)  # (B, N_obj)
+                    pi, log_pi = location_policy(q_s, alpha_loc)  # (B, N_obj)
+                    logp = logp_s
+                    weights = actor_surrogate_weights(q_s, logp_s, alpha_loc, alpha_m, self.is_sac)
+                    # 4b. Differentiate m points drawn from π_loc (with replacement).
+                    pick = torch.multinomial(pi, cfg.actor_points, replacement=True, generator=self.generator)
+                    coef = weights.coef.gather(1, pick)  # (B, m)
+                f_sub = f_obj[rows[:, None], pick]  # (B, m, D)
+                with frozen(self.critic):
+                    a_sub, logp_sub = self.motion_policy.sample(
+                        f_sub, noise_s[rows[:, None], pick]
+                    )  # (B, m, 3)
+                    q_sub = self._actor_q(f_sub, a_sub)  # (B, m)
+                    surrogate = (coef * q_sub + alpha_m * logp_sub).mean(-1).mean()
+                self.actor_optimizer.zero_grad(set_to_none=True)
+                surrogate.backward()
+                self.actor_optimizer.step()
+                out["actor_loss"] = weights.loss.mean().item()
+            else:
+                with frozen(self.critic):
+                    a, logp = self.motion_policy.sample(f_obj, noise_s)  # (B, N_obj, 3), (B, N_obj)
+                    q = self._actor_q(f_obj, a)  # (B, N_obj)
+                    pi, log_pi = location_policy(q, alpha_loc)  # (B, N_obj)
+                    j = -q + alpha_loc * log_pi + alpha_m * logp if self.is_sac else -q  # (B, N_obj) J_i
+                    actor_loss = (pi * j).sum(-1).mean()
+                self.actor_optimizer.zero_grad(set_to_none=True)
+                actor_loss.backward()
+                self.actor_optimizer.step()
+                out["actor_loss"] = actor_loss.item()
+                pi, log_pi, logp = pi.detach(), log_pi.detach(), logp.detach()
+
+            # 5. Temperatures (SAC): log-α losses on detached entropy estimates, as SB3 / CleanRL.
+            if self.is_sac:
+                entropy_loc = -(pi * log_pi).sum(-1)  # (B,) exact location entropy
+                entropy_motion = -(pi * logp).sum(-1)  # (B,) motion entropy (estimate) where π_loc picks
+                alpha_loss = self.log_alpha_loc * (entropy_loc - cfg.resolved_target_entropy_loc).mean()
+                alpha_loss = (
+                    alpha_loss
+                    + self.log_alpha_motion * (entropy_motion - cfg.resolved_target_entropy_motion).mean()
+                )
+                self.alpha_optimizer.zero_grad(set_to_none=True)
+                alpha_loss.backward()
+                self.alpha_optimizer.step()
+                out.update(
+                    entropy_loc=entropy_loc.mean().item(),
+                    entropy_motion=entropy_motion.mean().item(),
+                    alpha_loc=self.alpha_loc,
+                    alpha_motion=self.alpha_motion,
+                )
+
+        # 6. Polyak: SAC every update; TD3 with the (delayed) actor, as TD3 / SB3.
+        if self.is_sac or actor_step:
+            polyak_update(self.encoder.parameters(), self.encoder_target.parameters(), cfg.tau)
+            polyak_update(self.critic.parameters(), self.critic_target.parameters(), cfg.tau)
+            if self.motion_policy_target is not None:
+                polyak_update(
+                    self.motion_policy.parameters(), self.motion_policy_target.parameters(), cfg.tau
+                )
+        return out
+
+    def _actor_q(self, f: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """Q the actor maximises: twin minimum (SAC, as CleanRL) or Q1 (TD3 / HACMan). ``(B, M)``."""
+        return self.critic(f, a).amin(-1) if self.is_sac else self.critic.q1(f, a)
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict[str, Any]:
+        """Networks, targets, optimisers, log-temperatures, update counter, RNG state and config."""
+        sd: dict[str, Any] = {
+            "format": AGENT_FORMAT,
+            "config": self.config.to_dict(),
+            "n_updates": self.n_updates,
+            "generator": self.generator.get_state(),
+            "encoder": self.encoder.state_dict(),
+            "critic": self.critic.state_dict(),
+            "motion_policy": self.motion_policy.state_dict(),
+            "encoder_target": self.encoder_target.state_dict(),
+            "critic_target": self.critic_target.state_dict(),
+            "critic_optimizer": self.critic_optimizer.state_dict(),
+            "actor_optimizer": self.actor_optimizer.state_dict(),
+        }
+        if self.motion_policy_target is not None:
+            sd["motion_policy_target"] = self.motion_policy_target.state_dict()
+        if self.is_sac:
+            sd["log_alpha_loc"] = self.log_alpha_loc.detach().clone()
+            sd["log_alpha_motion"] = self.log_alpha_motion.detach().clone()
+            sd["alpha_optimizer"] = self.alpha_optimizer.state_dict()
+        return sd
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        """Restore everything :meth:`state_dict` saved; refuses a different config."""
+        if sd.get("format") != AGENT_FORMAT:
+            raise ValueError(f"agent state has format {sd.get('format')!r}, expected {AGENT_FORMAT!r}")
+        saved = AgentConfig.from_dict(sd["config"])
+        if saved != self.config:
+            diff = {
+                k: (v, getattr(self.config, k))
+                for k, v in asdict(saved).items()
+                if getattr(self.config, k) != v
+            }
+            raise ValueError(f"agent state was saved with a different config (saved, current): {diff}")
+        self.encoder.load_state_dict(sd["encoder"])
+        self.critic.load_state_dict(sd["critic"])
+        self.motion_policy.load_state_dict(sd["motion_policy"])
+        self.encoder_target.load_state_dict(sd["encoder_target"])
+        self.critic_target.load_state_dict(sd["critic_target"])
+        self.critic_optimizer.load_state_dict(sd["critic_optimizer"])
+        self.actor_optimizer.load_state_dict(sd["actor_optimizer"])
+        if self.motion_policy_target is not None:
+            self.motion_policy_target.load_state_dict(sd["motion_policy_target"])
+        if self.is_sac:
+            with torch.no_grad():
+                self.log_alpha_loc.copy_(sd["log_alpha_loc"])
+                self.log_alpha_motion.copy_(sd["log_alpha_motion"])
+            self.alpha_optimizer.load_state_dict(sd["alpha_optimizer"])
+        self.n_updates = int(sd["n_updates"])
+        self.generator.set_state(sd["generator"])
+
+    @classmethod
+    def from_state_dict(cls, sd: dict[str, Any]) -> HybridAgent:
+        """Build an agent from a saved state (its config included) and load it."""
+        agent = cls(AgentConfig.from_dict(sd["config"]))
+        agent.load_state_dict(sd)
+        return agent

@@ -1,0 +1,92 @@
+"""Small exact utilities shared by the networks and the algorithms (torch only).
+
+Nothing here knows about point clouds or algorithms: Polyak averaging, the tanh change of variables,
+Gaussian log-densities, shape checks.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+
+import torch
+from torch import nn
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+@torch.no_grad()
+def polyak_update(params: Iterable[torch.Tensor], target_params: Iterable[torch.Tensor], tau: float) -> None:
+    """In place ``target ← (1 − tau)·target + tau·online`` (SB3's ``polyak_update``).
+
+    One fused ``_foreach_lerp_`` instead of two ops per parameter (per-op overhead matters on the
+    2-core CPU). A length mismatch between the two lists raises instead of silently truncating (SB3
+    uses ``zip(strict=True)`` for the same reason).
+    """
+    params, target_params = list(params), list(target_params)
+    if len(params) != len(target_params):
+        raise ValueError(f"polyak_update: {len(params)} parameters but {len(target_params)} targets")
+    torch._foreach_lerp_(target_params, params, tau)
+
+
+def tanh_log_det(u: torch.Tensor) -> torch.Tensor:
+    """``Σ_d log(1 − tanh²(u_d))`` over the last axis: the log-Jacobian of ``a = tanh(u)``.
+
+    ``u (..., 3)`` pre-squash motion → ``(...)``. SB3 and CleanRL write ``log(1 − tanh(u)² + ε)`` with
+    ε = 1e-6 because float32 ``tanh(u)`` rounds to exactly ±1 for |u| ≳ 9, and ``log(0) = −inf`` would
+    poison the loss; ε caps the term at log(1e-6) ≈ −13.8 per dimension and biases it slightly for
+    every u. The identity ``log(1 − tanh²u) = 2·(log 2 − u − softplus(−2u))`` is exact and finite for
+    all u, so no ε (and no bias) is needed.
+    """
+    return (2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))).sum(-1)
+
+
+def gaussian_log_prob(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor | float) -> torch.Tensor:
+    """Diagonal Gaussian log-density summed over the last axis: ``(..., d) → (...)``."""
+    std_t = torch.as_tensor(std, dtype=x.dtype, device=x.device)
+    z = (x - mean) / std_t
+    return (-0.5 * z.pow(2) - torch.log(std_t) - 0.5 * LOG_2PI).sum(-1)
+
+
+def standard_normal_log_prob(z: torch.Tensor, std: torch.Tensor | float) -> torch.Tensor:
+    """``log N(μ + std·z; μ, std²)`` summed over the last axis, from the standard-normal draw ``z``.
+
+    Equal to :func:`gaussian_log_prob` of the reparameterised sample, without recomputing
+    ``(x − μ)/std`` (whose gradient w.r.t. μ is exactly zero anyway).
+    """
+    std_t = torch.as_tensor(std, dtype=z.dtype, device=z.device)
+    d = z.shape[-1]
+    log_std = torch.log(std_t)
+    if log_std.dim() > 0 and log_std.shape[-1] == d:
+        log_std = log_std.sum(-1)
+    else:
+        log_std = log_std * d
+    return -0.5 * z.pow(2).sum(-1) - log_std - 0.5 * d * LOG_2PI
+
+
+def mlp(
+    sizes: Sequence[int], activation: type[nn.Module] = nn.ReLU, layer_norm: bool = False
+) -> nn.Sequential:
+    """``Linear → [LayerNorm] → act`` between consecutive ``sizes``; the last layer is linear only."""
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2:
+            if layer_norm:
+                layers.append(nn.LayerNorm(sizes[i + 1]))
+            layers.append(activation())
+    return nn.Sequential(*layers)
+
+
+def check_shape(
+    name: str, t: torch.Tensor, shape: Sequence[int | None], dtype: torch.dtype | None = None
+) -> None:
+    """Raise ``ValueError`` naming the tensor when ``t`` does not have ``shape`` (None = any size)."""
+    if not isinstance(t, torch.Tensor):
+        raise TypeError(f"`{name}` must be a torch.Tensor. Got {type(t).__name__}.")
+    ok = t.dim() == len(shape) and all(s is None or s == ts for s, ts in zip(shape, t.shape, strict=True))
+    if not ok:
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"`{name}` must have shape {want}. Got {tuple(t.shape)}.")
+    if dtype is not None and t.dtype != dtype:
+        raise ValueError(f"`{name}` must have dtype {dtype}. Got {t.dtype}.")

@@ -1,0 +1,129 @@
+"""Per-point point-cloud encoder: a small PointNet with an optional one-layer kNN EdgeConv.
+
+Why not HACMan's PointNet++: on the 2-core CPU this project trains on, a HACMan-size PointNet++
+costs 0.3–3 s per gradient update (``../shared/reference/measurements.md``); the kNN-gathered tensors
+of its set-abstraction layers dominate. A PointNet (shared per-point MLP, max-pooled global context
+concatenated back per point) is a handful of dense matmuls, exports to ONNX with plain ops and leaves
+room for the K-step motion chain, which has to run on every object point in every update.
+
+Architecture (H = ``hidden``, G = ``global_dim``, D = ``out_dim``)::
+
+    x_i   = [ (p_i − mean(p_obj)) / s,  is_object_i,  goal_flow_i / s ]      (7,)    s = length_scale
+    h_i   = MLP_local(x_i)                                                  (H,)    all N points
+    h_i  += relu(A h_i + max_{j ∈ kNN(i)} B h_j)      [optional EdgeConv]  (H,)    object points
+    g     = [ max_{i ∈ obj} W_g h_i , max_{i ∈ bg} W_g h_i ]                (2G,)   per cloud
+    f_i   = LayerNorm(MLP_head(relu(W_h h_i + W_c g)))                      (D,)    object points
+
+Only object points get output features: every head (location, motion, critic) is evaluated on
+object points only, so background points contribute through the global feature alone and the head
+layers run on N_obj instead of N rows.
+
+The EdgeConv is exact and cheap: ``max_j relu(A h_i + B h_j) = relu(A h_i + max_j B h_j)`` because
+relu is monotone and ``A h_i`` does not depend on j, so the gathered ``(B, N_obj, k, H)`` tensor only
+goes through a max, never a matmul.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from models.common import check_shape
+
+FEATURE_DIM = 4  # [is_object, goal_flow_xyz]: the observation contract's per-point features
+
+
+class EncoderContext(NamedTuple):
+    """Intermediate per-point and per-cloud tensors; ``head`` turns them into features."""
+
+    local: torch.Tensor  # (B, N_obj, H) per-point local features of the object points
+    context: torch.Tensor  # (B, H) the global feature's contribution to the head's first layer
+
+
+class PointEncoder(nn.Module):
+    """Point cloud → per-object-point features.
+
+    Args:
+        n_obj: object points per cloud (they come first in ``points``).
+        n_bg: background points per cloud (after the object points).
+        out_dim: D, the per-point feature size fed to the heads.
+        hidden: H, width of the per-point MLPs.
+        global_dim: G, width of each max-pooled global feature (object and background).
+        knn: neighbours of the optional EdgeConv over object points; 0 disables it.
+        length_scale: metres mapped to one network unit for positions and goal flow (objects are
+            ~5–20 cm, the bin ~0.5 m, so 0.1 m keeps inputs at unit scale).
+    """
+
+    def __init__(
+        self,
+        n_obj: int,
+        n_bg: int,
+        out_dim: int = 64,
+        hidden: int = 64,
+        global_dim: int = 64,
+        knn: int = 0,
+        length_scale: float = 0.1,
+    ) -> None:
+        super().__init__()
+        if n_obj < 1 or n_bg < 0:
+            raise ValueError(f"`n_obj` must be ≥ 1 and `n_bg` ≥ 0. Got {n_obj}, {n_bg}.")
+        if knn < 0 or (knn > 0 and knn >= n_obj):
+            raise ValueError(f"`knn` must be in [0, n_obj). Got {knn} with n_obj={n_obj}.")
+        self.n_obj, self.n_bg, self.out_dim, self.knn = n_obj, n_bg, out_dim, knn
+        self.register_buffer("inv_scale", torch.tensor(1.0 / length_scale))
+        self.local = nn.Sequential(nn.Linear(7, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
+        if knn > 0:
+            self.edge_self = nn.Linear(hidden, hidden)
+            self.edge_nbr = nn.Linear(hidden, hidden, bias=False)
+        self.global_proj = nn.Linear(hidden, global_dim)
+        n_pools = 2 if n_bg > 0 else 1
+        self.head_local = nn.Linear(hidden, hidden)
+        self.head_global = nn.Linear(n_pools * global_dim, hidden, bias=False)
+        self.head_out = nn.Sequential(nn.ReLU(), nn.Linear(hidden, out_dim), nn.LayerNorm(out_dim))
+
+    def normalise(self, points: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        """``points (B, N, 3)`` metres, ``features (B, N, 4)`` → network input ``(B, N, 7)``.
+
+        Positions are taken relative to the object's centroid (translation invariance: the same push
+        on the same object means the same thing anywhere in the bin) and, like the goal flow, divided
+        by ``length_scale`` so exported graphs take raw metres.
+        """
+        centre = points[:, : self.n_obj].mean(dim=1, keepdim=True)  # (B, 1, 3)
+        pos = (points - centre) * self.inv_scale  # (B, N, 3)
+        flow = features[..., 1:] * self.inv_scale  # (B, N, 3)
+        return torch.cat([pos, features[..., :1], flow], dim=-1)  # (B, N, 7)
+
+    def encode_context(self, points: torch.Tensor, features: torch.Tensor) -> EncoderContext:
+        """Everything up to the per-point head: ``(B, N, 3), (B, N, 4)`` → :class:`EncoderContext`."""
+        n = self.n_obj + self.n_bg
+        check_shape("points", points, (None, n, 3))
+        check_shape("features", features, (None, n, FEATURE_DIM))
+        x = self.normalise(points, features)
+        h = self.local(x)  # (B, N, H)
+        h_obj = h[:, : self.n_obj]  # (B, N_obj, H)
+        if self.knn > 0:
+            pos = x[:, : self.n_obj, :3]  # (B, N_obj, 3) normalised positions
+            d = torch.cdist(pos, pos)  # (B, N_obj, N_obj)
+            nbr = d.topk(self.knn + 1, dim=-1, largest=False).indices[..., 1:]  # (B, N_obj, k), self dropped
+            bh = self.edge_nbr(h_obj)  # (B, N_obj, H)
+            b_idx = torch.arange(h_obj.shape[0], device=h.device)[:, None, None]
+            nbr_max = bh[b_idx, nbr].amax(dim=2)  # (B, N_obj, H): max over the k neighbours
+            h_obj = h_obj + torch.relu(self.edge_self(h_obj) + nbr_max)
+        g_all = self.global_proj(h)  # (B, N, G); the EdgeConv refines heads, not the pooled context
+        pools = [g_all[:, : self.n_obj].amax(dim=1)]  # (B, G)
+        if self.n_bg > 0:
+            pools.append(g_all[:, self.n_obj :].amax(dim=1))  # (B, G)
+        g = torch.relu(torch.cat(pools, dim=-1))  # (B, 2G)
+        return EncoderContext(local=h_obj, context=self.head_global(g))
+
+    def head(self, local: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        """Per-point features from local rows ``(..., H)`` and their cloud's context ``(..., H)``."""
+        return self.head_out(self.head_local(local) + context)  # (..., D)
+
+    def forward(self, points: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        """``points (B, N, 3)`` float32 metres (object points first), ``features (B, N, 4)``
+        ``[is_object, goal_flow_xyz]`` → object-point features ``(B, N_obj, D)``."""
+        ctx = self.encode_context(points, features)
+        return self.head(ctx.local, ctx.context[:, None, :])
