@@ -139,6 +139,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         eval_episodes=20,
         checkpoint_every=1_000,
         log_every=200,
+        # Temperatures sized to the reward (metres of goal flow, ~0.05-0.3 per primitive): at the
+        # learner's 0.1 / 0.01 the location-entropy bonus (0.1 x 4.8 nats) outweighed the reward
+        # and the cube reached 7% success at 2000 steps; at these values 60%, 87% at 3000 steps.
+        agent=dict(init_alpha_loc=0.01, init_alpha_motion=0.001, lr_alpha=0.003, location_beta=0.01),
     ),
     "default": {},
 }
