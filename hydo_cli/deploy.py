@@ -1,33 +1,321 @@
-"""``hydo deploy``: run an exported ONNX policy on a Panda / FR3 or its MuJoCo twin (issue: deploy)."""
+"""``hydo deploy``: run an exported ONNX policy on a Panda / FR3 with depth cameras, or on its MuJoCo twin.
+
+Thin wiring: parse flags, build a ``robot.loop.DeployConfig``, run ``robot.loop.Deployment`` and
+print a table. Torch is never imported on this path (numpy, onnxruntime, opencv, mujoco only).
+Operator's checklist for a real arm: the external stop device within reach, a person watching,
+``--dry-run`` first.
+"""
 
 from __future__ import annotations
 
+import shlex
+import sys
+import time
+from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
+from rich.console import Console
+from rich.table import Table
 
-from hydo_cli.errors import HydoError
+app = typer.Typer(invoke_without_command=True, no_args_is_help=False)  # help: the callback's docstring
+err = Console(stderr=True)
+out = Console()
 
-app = typer.Typer(
-    help="Run an exported ONNX policy on a Franka arm with depth cameras, or on its MuJoCo twin.",
-    invoke_without_command=True,
-)
+
+class Robot(str, Enum):
+    panda = "panda"
+    fr3 = "fr3"
+    sim = "sim"
+
+
+class OnRefusal(str, Enum):
+    stop = "stop"
+    next_episode = "next-episode"
+
+
+RobotOpt = Annotated[
+    Robot,
+    typer.Option("--robot", help="panda (panda-python) | fr3 (franky) | sim (the MuJoCo twin of the cell)."),
+]
+CellOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--cell",
+        help="Cell file (cameras, bin, workspace, limits). Default: robot/cell.example.yaml (the twin's).",
+    ),
+]
+BackgroundOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--background",
+        help="Empty-bin background. Default: background.npz next to the cell file (twin: captured).",
+    ),
+]
+
+
+def _offset(text: str | None):
+    if text is None:
+        return None
+    from robot.registration import parse_offset
+
+    try:
+        return parse_offset(text)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
+
+
+def _plan_table(episode: int, step: int, plan) -> None:
+    t = Table(title=f"plan: episode {episode}, step {step} (dry run: nothing moves)", title_justify="left")
+    for col in ("#", "kind", "move", "x (m)", "y (m)", "z (m)", "speed (m/s)"):
+        t.add_column(col, justify="right" if col not in ("kind", "move") else "left")
+    for row in plan.table_rows():
+        t.add_row(*row)
+    out.print(t)
 
 
 @app.callback()
 def deploy(
     ctx: typer.Context,
-    robot: Annotated[str, typer.Option("--robot", help="panda | fr3 | sim (the MuJoCo twin).")] = "sim",
-    model: Annotated[Path | None, typer.Option("--model", help="Exported model folder.")] = None,
+    robot: RobotOpt = Robot.sim,
+    model: Annotated[
+        Path | None, typer.Option("--model", help="Exported model folder (`hydo export`).")
+    ] = None,
+    cell: CellOpt = None,
+    goal: Annotated[
+        Path | None,
+        typer.Option("--goal", help="Goal cloud from `hydo deploy capture-goal`. Twin default: sampled."),
+    ] = None,
+    goal_offset: Annotated[
+        str | None,
+        typer.Option(
+            "--goal-offset",
+            help="Planar goal DX,DY[,YAW_DEG]: the start cloud moved by metres / turned by degrees.",
+        ),
+    ] = None,
+    background: BackgroundOpt = None,
+    episodes: Annotated[int, typer.Option("--episodes", min=1, help="Episodes to run.")] = 1,
+    max_steps: Annotated[int, typer.Option("--max-steps", min=1, help="Primitives per episode.")] = 10,
+    log: Annotated[
+        Path | None,
+        typer.Option("--log", help="Session folder (new or empty). Default: runs/deploy/<time>-<robot>."),
+    ] = None,
+    dry_run: Annotated[
+        bool,
+        typer.Option(
+            "--dry-run", help="Observe, decide and check; print each plan as a table; move nothing."
+        ),
+    ] = False,
+    seed: Annotated[
+        int, typer.Option("--seed", help="Seed of resampling, policy noise and twin episodes.")
+    ] = 0,
+    allow_no_realtime: Annotated[
+        bool, typer.Option("--allow-no-realtime", help="Run a real arm without a PREEMPT_RT kernel (logged).")
+    ] = False,
+    on_refusal: Annotated[
+        OnRefusal | None,
+        typer.Option(
+            "--on-refusal",
+            help="A refused observation/plan stops the run, or ends the episode. "
+            "Default: stop on real arms, next-episode in the twin.",
+        ),
+    ] = None,
+    replay: Annotated[
+        Path | None,
+        typer.Option(
+            "--replay", help="Play a recorded session's frames back through perception and policy (dry run)."
+        ),
+    ] = None,
+    objects: Annotated[
+        str | None,
+        typer.Option("--objects", help="Twin only: object set (default: the model's training objects)."),
+    ] = None,
+    speed_scale: Annotated[
+        float,
+        typer.Option(
+            "--speed-scale",
+            min=0.01,
+            max=1.0,
+            help="Slow every move by this factor (the cell's speeds are the maximum).",
+        ),
+    ] = 1.0,
 ) -> None:
-    """Examples:
+    """Run an exported ONNX policy on a Franka arm with depth cameras, or on its MuJoCo twin.
 
-    hydo deploy --robot sim --model models/hydo-cm-planar
+    Observe -> ONNX policy -> safety check -> execute, until the goal (3 cm mean goal flow) or --max-steps. Every step is logged to a session folder; --dry-run prints each plan and moves nothing. On a real arm: keep the stop device within reach and run --dry-run first.
 
-    hydo deploy --robot panda --model models/hydo-cm-6d --cell cell.yaml --goal goal.npz
+    Examples:
+
+      hydo deploy --robot sim --model models/hydo-cm-planar --episodes 50
+
+      hydo deploy --robot panda --model models/hydo-cm-6d --cell cell.yaml --goal goal.npz --dry-run
+
+      hydo deploy capture-background --robot panda --cell cell.yaml
     """
-    if ctx.invoked_subcommand is None:
-        raise HydoError(
-            "`hydo deploy` is not implemented yet (open issue: deploy); no camera was opened and no robot moved."
+    if ctx.invoked_subcommand is not None:
+        return
+    from robot.loop import DeployConfig, Deployment, summary_lines, write_summary
+
+    if model is None:
+        raise typer.BadParameter(
+            "--model is required (an exported model folder, from `hydo export`)", param_hint="--model"
         )
+    if goal is not None and goal_offset is not None:
+        raise typer.BadParameter("give --goal or --goal-offset, not both", param_hint="--goal-offset")
+    cfg = DeployConfig(
+        robot=robot.value,
+        model=model,
+        cell=cell,
+        goal=goal,
+        goal_offset=_offset(goal_offset),
+        background=background,
+        episodes=episodes,
+        max_steps=max_steps,
+        log_dir=log,
+        dry_run=dry_run or replay is not None,
+        seed=seed,
+        allow_no_realtime=allow_no_realtime,
+        on_refusal=None if on_refusal is None else on_refusal.value,
+        replay=replay,
+        objects=objects,
+        speed_scale=speed_scale,
+        command=shlex.join(["hydo", *sys.argv[1:]]),
+    )
+    dep = Deployment.prepare(cfg, printer=lambda msg: err.print(msg, highlight=False))
+    if cfg.dry_run:
+        dep.on_plan = _plan_table
+    err.print(
+        f"deploy: {cfg.robot}{' (dry run)' if cfg.dry_run else ''}, session {dep.log.folder}", highlight=False
+    )
+    try:
+        result = dep.run()
+    except KeyboardInterrupt:
+        err.print("interrupted: motion stopped, cameras closed, log flushed")
+        raise typer.Exit(130) from None
+    write_summary(result)
+    t = Table(title="hydo deploy", title_justify="left")
+    t.add_column("")
+    t.add_column("value", justify="right")
+    for name, value in summary_lines(result):
+        t.add_row(name, value)
+    out.print(t)
+
+
+def _twin_for_capture(cell, seed: int):
+    from robot.twin import TwinWorld
+    from sim.objects import load_objects
+
+    world = TwinWorld(cell, seed=seed)
+    world.load(load_objects("cube")[0])
+    return world
+
+
+@app.command("capture-background")
+def capture_background_cmd(
+    robot: RobotOpt = Robot.sim,
+    cell: CellOpt = None,
+    out_path: Annotated[
+        Path | None, typer.Option("--out", help="Output file. Default: background.npz next to the cell file.")
+    ] = None,
+    frames: Annotated[
+        int | None, typer.Option("--frames", min=1, help="Frames per camera (default: the cell's).")
+    ] = None,
+    seed: Annotated[int, typer.Option("--seed")] = 0,
+) -> None:
+    """Record the empty bin (per-pixel median depth of each camera).
+
+    Empty the bin and put the arm at its home pose first: the background includes whatever the cameras see.
+
+    Examples:
+
+      hydo deploy capture-background --robot panda --cell cell.yaml
+
+      hydo deploy capture-background --robot sim --out /tmp/background.npz
+    """
+    from robot.cameras import open_cameras
+    from robot.cell import load_cell
+    from robot.perception import capture_background
+
+    c = load_cell(cell)
+    path = out_path or Path(c.source).with_name("background.npz")
+    world = None
+    if robot is Robot.sim:
+        world = _twin_for_capture(c, seed)
+        world.hide_object()
+    try:
+        with open_cameras(c, robot.value, world=world) as cams:
+            bg = capture_background(cams, c, frames)
+    finally:
+        if world is not None:
+            world.close()
+    bg.save(path)
+    valid = np.mean([np.isfinite(d).mean() for d in bg.depth.values()])
+    err.print(f"background of {len(bg.depth)} cameras ({valid:.0%} valid pixels) written to {path}")
+
+
+@app.command("capture-goal")
+def capture_goal_cmd(
+    robot: RobotOpt = Robot.sim,
+    cell: CellOpt = None,
+    background: BackgroundOpt = None,
+    out_path: Annotated[Path, typer.Option("--out", help="Output goal file.")] = Path("goal.npz"),
+    offset: Annotated[
+        str | None,
+        typer.Option(
+            "--offset",
+            help="Planar goal DX,DY[,YAW_DEG] relative to where the object is now, instead of as-is.",
+        ),
+    ] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Twin: seed of the object's placement.")] = 0,
+    object_name: Annotated[str, typer.Option("--object", help="Twin: the object to place.")] = "cube",
+) -> None:
+    """Record the object's cloud at the goal pose (goal.npz).
+
+    Place the object where it should end up (or where it is now, with --offset), arm at home.
+
+    Examples:
+
+      hydo deploy capture-goal --robot panda --cell cell.yaml --out goal.npz
+
+      hydo deploy capture-goal --robot panda --cell cell.yaml --offset 0.10,0.0,30 --out goal.npz
+    """
+    from robot.cameras import open_cameras
+    from robot.cell import load_cell
+    from robot.perception import Background, capture_background, segment
+    from robot.registration import Goal, goal_from_offset
+
+    c = load_cell(cell)
+    off = _offset(offset)
+    world = None
+    rng = np.random.default_rng(seed)
+    try:
+        if robot is Robot.sim:
+            from robot.twin import sample_episode
+            from sim.objects import load_objects
+
+            world = _twin_for_capture(c, seed)
+            asset = load_objects(object_name)[0]
+            world.load(asset)
+            world.hide_object()
+        with open_cameras(c, robot.value, world=world) as cams:
+            if world is not None:
+                bg = Background.load(background, c) if background is not None else capture_background(cams, c)
+                _, (pos, quat), _ = sample_episode(world, (asset,), "planar", rng)
+                world.set_object_pose(pos, quat)
+                world.settle_object()
+            else:
+                bg = Background.load(background or Path(c.source).with_name("background.npz"), c)
+            seg = segment(cams.capture(), bg, c, rng)
+    finally:
+        if world is not None:
+            world.close()
+    goal = (
+        goal_from_offset(seg.obj_points, *off) if off else Goal(seg.obj_points, "captured", None, time.time())
+    )
+    goal.save(out_path)
+    centre = goal.points.mean(0)
+    err.print(
+        f"goal cloud of {len(goal.points)} points (centre {np.round(centre, 3).tolist()} m, base frame) written to {out_path}"
+    )

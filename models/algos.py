@@ -98,9 +98,10 @@ class AgentConfig:
     encoder_hidden: int = 64
     """Width of the encoder's per-point MLPs."""
     encoder_global: int = 64
-    """Width of each max-pooled global feature (object, background)."""
+    """Width of each max-pooled global feature (object, background); 128 costs ~15 % of updates/s."""
     encoder_knn: int = 0
-    """Neighbours of the optional EdgeConv layer over object points (0 = plain PointNet)."""
+    """Neighbours of the optional EdgeConv layer over object points (0 = plain PointNet; k = 8 costs
+    ~40 % of hydo-cm's updates/s, bench/learner.py)."""
     length_scale: float = 0.1
     """Metres per network unit for positions and goal flow inside the encoder."""
 
@@ -514,10 +515,8 @@ class HybridAgent:
                         torch.cat([f_next, f_obj]), torch.cat([noise_next, noise_s])
                     )  # (2B, N_obj, 3), (2B, N_obj)
                     a_next, logp_next, a_s, logp_s = a_all[:b], logp_all[:b], a_all[b:], logp_all[b:]
-                else:
-                    a_next, logp_next = self.motion_policy.sample(
-                        f_next, noise_next
-                    )  # (B, N_obj, 3), (B, N_obj)
+                else:  # a' (B, N_obj, 3), log π_m(a') (B, N_obj)
+                    a_next, logp_next = self.motion_policy.sample(f_next, noise_next)
                 q_next = self.critic_target(f_next, a_next).amin(-1)  # (B, N_obj): twin min
                 pi_next, log_pi_next = location_policy(q_next, alpha_loc)  # (B, N_obj)
                 soft_q = q_next - alpha_loc * log_pi_next - alpha_m * logp_next  # (B, N_obj)

@@ -1,7 +1,7 @@
 """Small exact utilities shared by the networks and the algorithms (torch only).
 
 Nothing here knows about point clouds or algorithms: Polyak averaging, the tanh change of variables,
-Gaussian log-densities, shape checks.
+an MLP builder, shape checks.
 """
 
 from __future__ import annotations
@@ -39,29 +39,6 @@ def tanh_log_det(u: torch.Tensor) -> torch.Tensor:
     all u, so no ε (and no bias) is needed.
     """
     return (2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))).sum(-1)
-
-
-def gaussian_log_prob(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor | float) -> torch.Tensor:
-    """Diagonal Gaussian log-density summed over the last axis: ``(..., d) → (...)``."""
-    std_t = torch.as_tensor(std, dtype=x.dtype, device=x.device)
-    z = (x - mean) / std_t
-    return (-0.5 * z.pow(2) - torch.log(std_t) - 0.5 * LOG_2PI).sum(-1)
-
-
-def standard_normal_log_prob(z: torch.Tensor, std: torch.Tensor | float) -> torch.Tensor:
-    """``log N(μ + std·z; μ, std²)`` summed over the last axis, from the standard-normal draw ``z``.
-
-    Equal to :func:`gaussian_log_prob` of the reparameterised sample, without recomputing
-    ``(x − μ)/std`` (whose gradient w.r.t. μ is exactly zero anyway).
-    """
-    std_t = torch.as_tensor(std, dtype=z.dtype, device=z.device)
-    d = z.shape[-1]
-    log_std = torch.log(std_t)
-    if log_std.dim() > 0 and log_std.shape[-1] == d:
-        log_std = log_std.sum(-1)
-    else:
-        log_std = log_std * d
-    return -0.5 * z.pow(2).sum(-1) - log_std - 0.5 * d * LOG_2PI
 
 
 def mlp(

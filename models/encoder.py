@@ -112,9 +112,9 @@ class PointEncoder(nn.Module):
             nbr_max = bh[b_idx, nbr].amax(dim=2)  # (B, N_obj, H): max over the k neighbours
             h_obj = h_obj + torch.relu(self.edge_self(h_obj) + nbr_max)
         g_all = self.global_proj(h)  # (B, N, G); the EdgeConv refines heads, not the pooled context
-        pools = [g_all[:, : self.n_obj].amax(dim=1)]  # (B, G)
+        pools = [g_all[:, : self.n_obj].max(dim=1).values]  # (B, G); max's backward is cheaper than amax's
         if self.n_bg > 0:
-            pools.append(g_all[:, self.n_obj :].amax(dim=1))  # (B, G)
+            pools.append(g_all[:, self.n_obj :].max(dim=1).values)  # (B, G)
         g = torch.relu(torch.cat(pools, dim=-1))  # (B, 2G)
         return EncoderContext(local=h_obj, context=self.head_global(g))
 

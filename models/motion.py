@@ -238,9 +238,9 @@ class _ChainPolicy(MotionPolicy):
         """Scalar time feature of each step, ``(K,)``."""
         raise NotImplementedError
 
-    def _fold(self, z: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor], list]:
-        """Per call: (``W_x^T`` per step ``(3, H)``, ``σ_j z_j`` (+ folded biases) per step ``(R, 3)``,
-        per-step output weights for ``_advance``)."""
+    def _fold(self, z: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor], list]:
+        """Per call: (``W_x^T`` per step ``(K, 3, H)``, ``σ_j z_j`` (+ folded biases) per step
+        ``(R, 3)``, per-step output weights for ``_advance``)."""
         raise NotImplementedError
 
     def _advance(
@@ -261,15 +261,17 @@ class _ChainPolicy(MotionPolicy):
         d = self.denoiser
         z = noise.reshape(rows, self.n_noise, MOTION_DIM)  # (R, K+1, 3) standard-normal draws
         cond = d.in_f(f.reshape(rows, -1))  # (R, H): W_f f + b, once per chain
-        t_bias = d.time_bias(self._time_features())  # (K, H)
-        cond_t = (cond.unsqueeze(0) + t_bias.unsqueeze(1)).unbind(0)  # K × (R, H)
         w_x, noise_terms, out_w = self._fold(z)
+        # [u, 1] @ [W_x^T; W_t emb(t_j)]: the time bias rides in the same matmul as the input.
+        t_bias = d.time_bias(self._time_features())  # (K, H)
+        w_in = torch.cat([w_x, t_bias.unsqueeze(1)], dim=1).unbind(0)  # K × (4, H)
+        ones = z.new_ones(rows, 1)
         learned = self.entropy == "learned_std"
         u = z[:, 0] * self.prior_std  # (R, 3): u^K
         states = [u]
         log_std_sum = 0.0  # Σ_k Σ_d log σ_k,d: a float for fixed stds, (R,) for learned ones
         for j in range(self.n_steps):  # unrolled: K dense steps
-            h = torch.addmm(cond_t[j], u, w_x[j]).relu_()  # (R, H)
+            h = torch.addmm(cond, torch.cat([u, ones], dim=1), w_in[j]).relu_()  # (R, H)
             h = F.linear(h, d.hidden.weight, d.hidden.bias).relu_()  # (R, H)
             if learned:
                 pred, raw_std = F.linear(h, d.out.weight, d.out.bias).split(MOTION_DIM, dim=-1)
@@ -348,7 +350,7 @@ class DDPMPolicy(_ChainPolicy):
         return self.step_time
 
     def _fold(self, z):
-        w_x = [self.denoiser.in_x.weight.t()] * self.n_steps  # (3, H): DDPM feeds u^k unscaled
+        w_x = self.denoiser.in_x.weight.t().expand(self.n_steps, -1, -1)  # (K, 3, H): u^k unscaled
         noise_terms = (z[:, 1:] * self.step_std_t).unbind(1)  # K × (R, 3): σ_j z_j
         # û^0 = c·tanh((W_o h + b)/c): fold 1/c into the output layer once per call.
         out = self.denoiser.out
@@ -435,7 +437,7 @@ class ConsistencyPolicy(_ChainPolicy):
         # (Output weights stay (3, H) and enter matmuls transposed: with only 3 output columns the
         # transposed layout is ~2× faster on CPU than a contiguous (H, 3) matrix.)
         out = self.denoiser.out
-        w_x = (self.c_in_t * self.denoiser.in_x.weight.t()).unbind(0)  # K × (3, H)
+        w_x = self.c_in_t * self.denoiser.in_x.weight.t()  # (K, 3, H): input c_in·u
         w_out = (self.c_out_t * out.weight[:MOTION_DIM]).unbind(0)  # K × (3, H)
         bias = self.c_out_t.squeeze(-1) * out.bias[:MOTION_DIM]  # (K, 3)
         noise_terms = (z[:, 1:] * self.step_std_t + bias).unbind(1)  # K × (R, 3)

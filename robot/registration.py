@@ -1,0 +1,278 @@
+"""Goal clouds and registration: the current object cloud → the goal cloud, giving the goal flow.
+
+Training defines ``goal_flow = T_goal · T_obj⁻¹ · p − p``: the rigid transform that carries the object
+from where it is to where it should be, applied to each observed point. On a robot neither pose is
+known; :func:`register` estimates that transform ``T`` (4, 4) directly, as the one that maps the
+current object cloud onto the goal cloud (``goal.npz``, recorded by ``hydo deploy capture-goal``):
+
+1. global initialisation: the current cloud's centroid moved onto the goal's, under each of a fixed
+   set of candidate rotations (yaw every 10° for planar goals; 24 axis-aligned orientations × yaw
+   every 30° for 6d goals), scored by the trimmed mean nearest-neighbour distance of a subsample
+   (one vectorised ``cKDTree`` query for all candidates);
+2. trimmed point-to-point ICP (Kabsch) from the best few, keeping the closest 80% of
+   correspondences (the two clouds are partial views of different sides);
+3. residuals: RMS of inlier distances (< 1 cm) and the inlier fraction. A poor registration is
+   refused (``RegistrationError`` with its residuals); there is no approximate fallback.
+
+The measured distance to the goal is ``mean ‖T p − p‖`` over the current object points: the reward's
+quantity, so success is the same 3 cm threshold as in training. Symmetric objects register to any
+of their symmetric poses (the flow then points to the nearest one).
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from robot.errors import RegistrationError
+from sim.contract import transform_points
+
+INLIER_M = 0.01  # a correspondence closer than this is an inlier
+TRIM = 0.8  # ICP fits the closest 80% of correspondences
+ICP_ITERS = 30
+COARSE_POINTS = 96  # source points scored per candidate rotation
+MAX_SOURCE_POINTS = 400
+MAX_TARGET_POINTS = 3000
+REFINE_CANDIDATES = 4
+GOAL_FORMAT = "hydo-goal/1"
+
+
+@dataclass
+class Registration:
+    """``T`` maps current object points onto the goal cloud; residuals say how well."""
+
+    T: np.ndarray  # (4, 4)
+    rmse: float  # m, RMS of inlier correspondence distances
+    inlier_fraction: float  # of current object points with a goal point within INLIER_M
+    distance: float  # m, mean ‖T p − p‖ over the current object points (the reward's quantity)
+    seconds: float
+
+    def to_json(self) -> dict:
+        return {
+            "T": np.round(self.T, 6).tolist(),
+            "rmse_m": round(self.rmse, 6),
+            "inlier_fraction": round(self.inlier_fraction, 4),
+            "distance_m": round(self.distance, 6),
+            "seconds": round(self.seconds, 4),
+        }
+
+
+def _rot_z(a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros((len(a), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return R
+
+
+@functools.cache
+def _cube_group() -> np.ndarray:
+    """The 24 rotations mapping the coordinate axes onto themselves (3, 3) each."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            R = np.zeros((3, 3))
+            R[range(3), perm] = signs
+            if np.linalg.det(R) > 0:
+                out.append(R)
+    return np.array(out)
+
+
+@functools.cache
+def candidate_rotations(mode: str) -> np.ndarray:
+    """Initial rotations (C, 3, 3): yaw every 10° (planar) or 24 orientations × yaw every 30° (6d)."""
+    if mode == "planar":
+        return _rot_z(np.deg2rad(np.arange(0, 360, 10)))
+    yaw = _rot_z(np.deg2rad(np.arange(0, 360, 30)))
+    return np.einsum("yij,gjk->ygik", yaw, _cube_group()).reshape(-1, 3, 3)
+
+
+def kabsch(a: np.ndarray, b: np.ndarray, planar: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R (3, 3) and translation t (3,) minimising Σ‖R a + t − b‖² (yaw only if ``planar``)."""
+    ca, cb = a.mean(0), b.mean(0)
+    A, B = a - ca, b - cb
+    if planar:
+        ang = np.arctan2(
+            np.sum(A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]), np.sum(A[:, 0] * B[:, 0] + A[:, 1] * B[:, 1])
+        )
+        R = _rot_z(np.array([ang]))[0]
+    else:
+        U, _, Vt = np.linalg.svd(A.T @ B)
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+        R = Vt.T @ D @ U.T
+    return R, cb - R @ ca
+
+
+def _icp(src: np.ndarray, tgt: np.ndarray, tree: cKDTree, T: np.ndarray) -> tuple[np.ndarray, float]:
+    """Trimmed point-to-point ICP from ``T``; returns ``(T, trimmed RMS)``."""
+    T = T.copy()
+    rms = np.inf
+    for _ in range(ICP_ITERS):
+        x = transform_points(T, src)
+        d, j = tree.query(x)
+        keep = d <= np.quantile(d, TRIM)
+        R, t = kabsch(x[keep], tgt[j[keep]])
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = R, t
+        T = step @ T
+        new_rms = float(np.sqrt(np.mean(d[keep] ** 2)))
+        if abs(rms - new_rms) < 1e-6 and np.linalg.norm(t) < 1e-5:
+            rms = new_rms
+            break
+        rms = new_rms
+    return T, rms
+
+
+def _subsample(p: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    return p if len(p) <= n else p[rng.choice(len(p), n, replace=False)]
+
+
+def register(source: np.ndarray, target: np.ndarray, mode: str = "6d", seed: int = 0) -> Registration:
+    """Register the current object cloud ``source (M, 3)`` to the goal cloud ``target (G, 3)``."""
+    t0 = time.perf_counter()
+    source = np.asarray(source, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    if len(source) < 10 or len(target) < 10:
+        raise RegistrationError(
+            f"registration needs at least 10 points each (have {len(source)} and {len(target)})"
+        )
+    rng = np.random.default_rng(seed)
+    src = _subsample(source, MAX_SOURCE_POINTS, rng)
+    tgt = _subsample(target, MAX_TARGET_POINTS, rng)
+    tree = cKDTree(tgt)
+    cs, ct = src.mean(0), tgt.mean(0)
+    coarse = _subsample(src, COARSE_POINTS, rng) - cs  # (m, 3)
+    Rs = candidate_rotations(mode)  # (C, 3, 3)
+    x = np.einsum("cij,mj->cmi", Rs, coarse) + ct  # (C, m, 3)
+    d, _ = tree.query(x.reshape(-1, 3))
+    d = np.sort(d.reshape(len(Rs), -1), axis=1)[:, : int(TRIM * coarse.shape[0])]
+    order = np.argsort(d.mean(1))[:REFINE_CANDIDATES]
+    best_T, best_rms = None, np.inf
+    for c in order:
+        T0 = np.eye(4)
+        T0[:3, :3] = Rs[c]
+        T0[:3, 3] = ct - Rs[c] @ cs
+        T, rms = _icp(src, tgt, tree, T0)
+        if rms < best_rms:
+            best_T, best_rms = T, rms
+    moved = transform_points(best_T, source)
+    d_all, _ = tree.query(moved)
+    inl = d_all < INLIER_M
+    rmse = float(np.sqrt(np.mean(d_all[inl] ** 2))) if inl.any() else np.inf
+    distance = float(np.linalg.norm(moved - source, axis=1).mean())
+    return Registration(best_T, rmse, float(inl.mean()), distance, time.perf_counter() - t0)
+
+
+def adds_error(T_est: np.ndarray, T_true: np.ndarray, points: np.ndarray) -> float:
+    """ADD-S (m): mean distance from each ``T_est·p`` to the nearest ``T_true·q`` over ``points``.
+
+    The symmetric-object pose error (a cube turned 90° registers perfectly and scores ~0).
+    """
+    est, true = transform_points(T_est, points), transform_points(T_true, points)
+    return float(cKDTree(true).query(est)[0].mean())
+
+
+def check_registration(reg: Registration, max_rmse: float, min_inliers: float) -> None:
+    """Refuse to act on a poor registration, with its residuals (no approximate fallback)."""
+    if not np.all(np.isfinite(reg.T)) or reg.rmse > max_rmse or reg.inlier_fraction < min_inliers:
+        raise RegistrationError(
+            f"registration to the goal failed: inlier RMS {reg.rmse * 1000:.1f} mm (max {max_rmse * 1000:.1f}), "
+            f"inliers {reg.inlier_fraction:.0%} (min {min_inliers:.0%}); wrong object, or too noisy: "
+            "refusing to act"
+        )
+
+
+# --- goals --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Goal:
+    """A goal cloud (base frame) and how it was made."""
+
+    points: np.ndarray  # (G, 3) float32, object points at the goal pose, robot base frame
+    kind: str  # "captured" (the object placed at the goal) | "offset" (the start cloud moved)
+    offset: tuple[float, float, float] | None = None  # (dx m, dy m, yaw deg) for "offset" goals
+    created_at: float = 0.0
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        meta = {
+            "format": GOAL_FORMAT,
+            "kind": self.kind,
+            "offset": self.offset,
+            "created_at": self.created_at,
+        }
+        tmp = path.with_name(f".{path.name}.tmp.npz")
+        np.savez_compressed(tmp, points=self.points.astype(np.float32), meta=np.array(json.dumps(meta)))
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> Goal:
+        path = Path(path)
+        if not path.is_file():
+            raise RegistrationError(
+                f"goal {path} does not exist: record one with `hydo deploy capture-goal --out {path}`"
+            )
+        try:
+            with np.load(path) as z:
+                points = z["points"].astype(np.float32)
+                meta = json.loads(str(z["meta"]))
+        except (OSError, ValueError, KeyError) as e:
+            raise RegistrationError(
+                f"goal {path} is unreadable ({e.__class__.__name__}): record it again"
+            ) from None
+        if meta.get("format") != GOAL_FORMAT:
+            raise RegistrationError(
+                f"goal {path}: format {meta.get('format')!r}, this hydo reads {GOAL_FORMAT!r}"
+            )
+        if points.ndim != 2 or points.shape[1] != 3 or len(points) < 10 or not np.all(np.isfinite(points)):
+            raise RegistrationError(f"goal {path}: `points` must be at least 10 finite 3D points")
+        off = meta.get("offset")
+        return cls(
+            points,
+            meta.get("kind", "captured"),
+            tuple(off) if off else None,
+            float(meta.get("created_at", 0)),
+        )
+
+
+def offset_transform(points: np.ndarray, dx: float, dy: float, yaw_deg: float = 0.0) -> np.ndarray:
+    """(4, 4): rotate ``yaw_deg`` about the vertical through the cloud's centroid, then shift (dx, dy)."""
+    c = np.asarray(points, dtype=np.float64).mean(0)
+    R = _rot_z(np.array([np.deg2rad(yaw_deg)]))[0]
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = c - R @ c + np.array([dx, dy, 0.0])
+    return T
+
+
+def goal_from_offset(points: np.ndarray, dx: float, dy: float, yaw_deg: float = 0.0) -> Goal:
+    """A planar goal: the current object cloud moved by ``(dx, dy)`` metres and turned ``yaw_deg``."""
+    T = offset_transform(points, dx, dy, yaw_deg)
+    return Goal(
+        transform_points(T, np.asarray(points, np.float64)).astype(np.float32),
+        "offset",
+        (dx, dy, yaw_deg),
+        time.time(),
+    )
+
+
+def parse_offset(text: str) -> tuple[float, float, float]:
+    """``"DX,DY[,YAW_DEG]"`` (metres, metres, degrees) → a tuple; raises ``ValueError``."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) not in (2, 3):
+        raise ValueError(f"a goal offset is DX,DY[,YAW_DEG] (metres, metres, degrees). Got {text!r}.")
+    vals = [float(p) for p in parts] + ([0.0] if len(parts) == 2 else [])
+    if not all(np.isfinite(vals)):
+        raise ValueError(f"a goal offset must be finite. Got {text!r}.")
+    if np.hypot(vals[0], vals[1]) > 0.5:
+        raise ValueError(f"a goal offset of {np.hypot(vals[0], vals[1]):.2f} m leaves any bin. Got {text!r}.")
+    return vals[0], vals[1], vals[2]

@@ -1,0 +1,214 @@
+"""The MuJoCo twin: the arm pushes, the contact-force stop fires on a welded object, IK refuses
+unreachable plans, rendered perception matches ground truth, and ``hydo deploy --robot sim`` runs end
+to end without torch."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from robot.cameras import CameraSet, open_cameras
+from robot.errors import UnreachableError
+from robot.executor import Outcome
+from robot.perception import capture_background, segment
+from robot.safety import SafetyGate
+from robot.session_log import SessionLog, read_log
+from robot.twin import TwinExecutor, TwinWorld
+from sim.objects import load_objects
+from sim.render import mask_iou
+
+
+@pytest.fixture(scope="module")
+def world(cell):
+    w = TwinWorld(cell, seed=0)
+    w.load(load_objects("cube")[0])
+    yield w
+    w.close()
+
+
+def place_cube(world, cell, xy=(0.5, 0.0)):
+    world.reset_arm()
+    world.weld_object(False)
+    world.set_object_pose(np.array([xy[0], xy[1], cell.floor_z + 0.03]), [1.0, 0, 0, 0])
+    world.settle_object()
+
+
+def test_arm_starts_at_home_out_of_view_of_the_bin(world, cell):
+    p = world.fingertip()
+    assert p[2] > cell.approach_z and np.allclose(world.joints(), cell.home_joints)
+    for i in range(len(cell.cameras)):  # only the arm's fixed base is seen (behind the bin)
+        arm = world.true_mask(i, "arm")
+        assert arm.sum() < 0.03 * arm.size
+
+
+def test_twin_push_moves_the_object_and_logs_every_command(world, cell, tmp_path):
+    place_cube(world, cell)
+    before = world.object_pose()[0]
+    gate = SafetyGate(cell, world.kin)
+    plan = gate.plan_primitive(before + [0.03, 0.0, 0.0], np.array([1.0, 0, 0]), np.array([-1.0, 0, 0]))
+    with SessionLog(tmp_path / "s") as log, TwinExecutor(world, cell, log=log) as robot:
+        result = robot.execute(plan)
+    assert result.outcome is Outcome.ok and len(result.commanded) == len(plan.commands)
+    moved = world.object_pose()[0] - before
+    assert -0.12 < moved[0] < -0.05 and abs(moved[1]) < 0.02  # pushed ~9 cm (3 x 3 cm) towards the robot
+    assert robot.at_home()
+    lines = read_log(tmp_path / "s")
+    kinds = [e["event"] for e in lines]
+    assert kinds.count("command") == len(plan.commands)
+    for i, e in enumerate(lines):  # every command_done follows its command line
+        if e["event"] == "command_done":
+            assert lines[i - 1]["event"] == "command" and lines[i - 1]["index"] == e["index"]
+
+
+def test_contact_force_stop_on_a_welded_object(world, cell, tmp_path):
+    place_cube(world, cell)
+    world.weld_object(True)
+    try:
+        p0 = world.object_pose()[0]
+        gate = SafetyGate(cell, world.kin)
+        plan = gate.plan_primitive(p0 + [0.03, 0.0, 0.0], np.array([1.0, 0, 0]), np.array([-1.0, 0, 0]))
+        with SessionLog(tmp_path / "s") as log, TwinExecutor(world, cell, log=log) as robot:
+            result = robot.execute(plan)
+            assert result.outcome is Outcome.reaction_fired
+            assert result.failed.kind == "push" and "w5 push 3" not in [
+                c.label for c in result.commanded[:-1]
+            ]
+            assert cell.limits.force_stop < result.peak_force <= 1.2 * cell.limits.force_stop
+            retract = gate.plan_retract(robot.fingertip(), robot.joints())
+            assert robot.execute(retract).outcome is Outcome.ok and robot.at_home()
+        np.testing.assert_allclose(world.object_pose()[0], p0, atol=2e-3)
+        done = [e for e in read_log(tmp_path / "s") if e["event"] == "command_done"]
+        assert any(e["outcome"] == "reaction_fired" for e in done)
+    finally:
+        world.weld_object(False)
+
+
+def test_unreachable_or_near_joint_limit_plans_refused(world, cell):
+    gate = SafetyGate(cell, world.kin)
+    with pytest.raises(UnreachableError, match="joint 4 within 0.0\\d+ rad of its limit"):
+        gate.plan_primitive(np.array([0.30, 0.0, 0.10]), np.array([0, 0, 1.0]), np.zeros(3))
+
+
+def test_rendered_segmentation_and_registration_match_the_twin(world, cell):
+    from robot.registration import adds_error, register
+    from sim.contract import transform_points
+
+    rng = np.random.default_rng(0)
+    world.reset_arm()
+    world.hide_object()
+    with open_cameras(cell, "sim", world=world) as cams:
+        bg = capture_background(cams, cell, 3)
+        world.set_object_pose([0.55, 0.05, cell.floor_z + 0.03], [1.0, 0, 0, 0])
+        world.settle_object()
+        T_goal = world.object_T()
+        goal = segment(cams.capture(), bg, cell, rng)
+        world.set_object_pose([0.46, -0.06, cell.floor_z + 0.03], [np.cos(0.3), 0, 0, np.sin(0.3)])
+        world.settle_object()
+        seg = segment(cams.capture(), bg, cell, rng)
+    true = np.stack([world.true_mask(i) for i in range(3)])
+    assert mask_iou(np.stack(seg.masks), true) > 0.85
+    reg = register(seg.obj_points, goal.obj_points, "planar")
+    T_true = T_goal @ np.linalg.inv(world.object_T())
+    surf = transform_points(world.object_T(), world.asset.surface_points)
+    assert adds_error(reg.T, T_true, surf) < 0.004 and reg.rmse < cell.perception.registration_max_rmse
+
+
+NO_TORCH = textwrap.dedent(
+    """
+    import sys, importlib.abc
+    class Block(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path, target=None):
+            if name == "torch" or name.startswith("torch."):
+                raise ImportError("torch is blocked: deploy must not need it")
+    sys.meta_path.insert(0, Block())
+    from hydo_cli.main import main
+    try:
+        main()
+    finally:
+        assert "torch" not in sys.modules
+    """
+)
+
+
+def hydo_no_torch(*args, timeout=600):
+    return subprocess.run(
+        [sys.executable, "-c", NO_TORCH, *args], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def test_deploy_sim_end_to_end_without_torch(tiny_model, tmp_path):
+    """``hydo deploy --robot sim --model <tiny export> --episodes 2``: rendered cameras, perception,
+    registration, ONNX policy, safety gate, the twin arm; then the replay camera plays it back."""
+    session = tmp_path / "session"
+    r = hydo_no_torch(
+        "deploy",
+        "--robot",
+        "sim",
+        "--model",
+        str(tiny_model),
+        "--episodes",
+        "2",
+        "--max-steps",
+        "1",
+        "--log",
+        str(session),
+    )
+    assert r.returncode == 0, r.stderr
+    assert "success rate" in r.stdout and "segmentation IoU" in r.stdout
+    summary = json.loads((session / "summary.json").read_text())
+    assert summary["episodes"] == 2
+    assert summary["mean_iou"] > 0.8 and summary["mean_registration_error_m"] < 0.01
+    lines = read_log(session)
+    ends = [e for e in lines if e["event"] == "episode_end"]
+    assert len(ends) == 2 and all(e["true_distance"] is not None for e in ends)
+    outcomes = [e for e in lines if e["event"] in ("outcome", "refused")]
+    assert outcomes, "each episode either executed or refused its primitive"
+    commands = [e for e in lines if e["event"] == "command"]
+    assert summary["commands_sent"] == len(commands)
+    assert (session / "background.npz").exists() and (session / "goals" / "e000.npz").exists()
+
+    # Replay: the recorded frames through perception and the policy again, moving nothing.
+    r2 = hydo_no_torch(
+        "deploy", "--replay", str(session), "--model", str(tiny_model), "--log", str(tmp_path / "replay")
+    )
+    assert r2.returncode == 0, r2.stderr
+    assert (
+        "dry run" in r2.stderr
+        and json.loads((tmp_path / "replay" / "summary.json").read_text())["commands_sent"] == 0
+    )
+
+
+def test_capture_background_and_goal_in_the_twin(tmp_path):
+    bg, goal = tmp_path / "background.npz", tmp_path / "goal.npz"
+    r = hydo_no_torch("deploy", "capture-background", "--robot", "sim", "--out", str(bg), "--frames", "2")
+    assert r.returncode == 0 and bg.exists(), r.stderr
+    r = hydo_no_torch(
+        "deploy",
+        "capture-goal",
+        "--robot",
+        "sim",
+        "--background",
+        str(bg),
+        "--out",
+        str(goal),
+        "--offset",
+        "0.1,0,30",
+    )
+    assert r.returncode == 0 and "goal cloud of" in r.stderr, r.stderr
+    from robot.registration import Goal
+
+    g = Goal.load(goal)
+    assert g.kind == "offset" and g.offset == (0.1, 0.0, 30.0) and len(g.points) > 100
+
+
+def test_twin_cameras_close_and_reopen(world, cell):
+    cams = open_cameras(cell, "sim", world=world)
+    assert isinstance(cams, CameraSet)
+    with cams:
+        frames = cams.capture()
+    assert [f.serial for f in frames] == [c.serial for c in cell.cameras]
