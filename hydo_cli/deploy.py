@@ -232,7 +232,7 @@ def capture_background_cmd(
 
       hydo deploy capture-background --robot panda --cell cell.yaml
 
-      hydo deploy capture-background --robot sim --out /tmp/background.npz
+      hydo deploy capture-background --robot sim --out background.npz
     """
     from robot.cameras import open_cameras
     from robot.cell import load_cell
