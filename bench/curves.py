@@ -34,7 +34,7 @@ def main() -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from hydo_cli.util import atomic_write_text
+    from sim.atomic import atomic_write_text
 
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for run in args.runs:

@@ -41,8 +41,8 @@ def main() -> None:
     from hydo_cli.export import export_agent
     from hydo_cli.train import TrainConfig
     from hydo_cli.trainer import agent_config, load_agent
-    from hydo_cli.util import atomic_write_text
     from robot.onnx_policy import OnnxPolicy
+    from sim.atomic import atomic_write_text
     from sim.env import BinEnv
 
     if args.run is None:

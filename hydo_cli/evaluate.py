@@ -27,7 +27,7 @@ from rich.table import Table
 
 from hydo_cli.errors import HydoError
 from hydo_cli.options import ClutterOpt, Goals, GoalsOpt, ObjectsOpt, ObsSource, SeedOpt, TaskOpt
-from hydo_cli.util import atomic_write_text
+from sim.atomic import atomic_write_text
 
 HELP = """Evaluate policies: success per run, IQM [95% CI] across runs, the paper's Table I (--compare).
 

@@ -34,7 +34,7 @@ from rich.console import Console
 
 from hydo_cli.errors import HydoError
 from hydo_cli.options import TaskOpt
-from hydo_cli.util import atomic_write_text
+from sim.atomic import atomic_write_text
 
 HELP = """Train a hybrid policy (HyDo or a baseline) in the simulated bin.
 
@@ -103,8 +103,10 @@ class TrainConfig:
     """Env steps between checkpoints."""
     log_every: int = 500
     """Env steps between metric lines."""
+    threads: int = 2
+    """torch intra-op threads: 2 on an idle 2-core machine, 1 when two runs share it."""
     agent: dict = dataclasses.field(default_factory=dict)
-    """Extra learner options passed to ``models.AgentConfig`` (e.g. {"hidden": 64})."""
+    """Extra learner options passed to ``models.AgentConfig`` (e.g. {"actor_hidden": 128}; see AgentConfig)."""
 
     def __post_init__(self):
         algos = [a.value for a in Algo]
@@ -114,7 +116,16 @@ class TrainConfig:
             raise HydoError(f"`goals` must be one of ['planar', '6d']. Got {self.goals!r}.")
         if self.clutter not in (0, 1, 2, 5):
             raise HydoError(f"`clutter` must be one of [0, 1, 2, 5]. Got {self.clutter!r}.")
-        for name in ("steps", "n_obj", "n_bg", "n_envs", "batch_size", "buffer_size", "denoise_steps"):
+        for name in (
+            "steps",
+            "n_obj",
+            "n_bg",
+            "n_envs",
+            "batch_size",
+            "buffer_size",
+            "denoise_steps",
+            "threads",
+        ):
             if getattr(self, name) < 1:
                 raise HydoError(f"`{name}` must be at least 1. Got {getattr(self, name)}.")
         if self.updates_per_step < 0:
@@ -139,10 +150,6 @@ PRESETS: dict[str, dict[str, Any]] = {
         eval_episodes=20,
         checkpoint_every=1_000,
         log_every=200,
-        # Temperatures sized to the reward (metres of goal flow, ~0.05-0.3 per primitive): at the
-        # learner's 0.1 / 0.01 the location-entropy bonus (0.1 x 4.8 nats) outweighed the reward
-        # and the cube reached 7% success at 2000 steps; at these values 60%, 87% at 3000 steps.
-        agent=dict(init_alpha_loc=0.01, init_alpha_motion=0.001, lr_alpha=0.003, location_beta=0.01),
     ),
     "default": {},
 }
@@ -212,6 +219,10 @@ def train(
     max_minutes: Annotated[
         float | None, typer.Option("--minutes", help="Wall-clock budget (0: none).")
     ] = None,
+    threads: Annotated[
+        int | None,
+        typer.Option("--threads", help="torch threads: 2 alone on 2 cores, 1 if two runs share them."),
+    ] = None,
     out: Annotated[
         Path | None, typer.Option("--out", help="Run directory (default: runs/<algo>-...).")
     ] = None,
@@ -228,6 +239,8 @@ def train(
         cfg = TrainConfig(**json.loads((run_dir / "config.json").read_text()))
         if steps is not None:  # allow extending a finished run
             cfg = dataclasses.replace(cfg, steps=steps)
+        if threads is not None:  # a speed setting, not a learning one: may differ on resume
+            cfg = dataclasses.replace(cfg, threads=threads)
     else:
         cfg = resolve_config(
             preset,
@@ -241,6 +254,7 @@ def train(
                 seed=seed,
                 denoise_steps=denoise_steps,
                 max_minutes=max_minutes,
+                threads=threads,
                 task=task.value if task else None,
             ),
         )
@@ -254,7 +268,7 @@ def train(
         run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(run_dir / "config.json", json.dumps(dataclasses.asdict(cfg), indent=2))
         atomic_write_text(run_dir / "command.txt", shlex.join(sys.argv) + "\n")
-        atomic_write_text(run_dir / "system.json", json.dumps(system_info(), indent=2))
+        atomic_write_text(run_dir / "system.json", json.dumps({**system_info(), **trainer.cpu}, indent=2))
     trainer.run()
 
 

@@ -25,6 +25,7 @@ from hydo_cli.rollout import run_episodes, summarize
 from hydo_cli.train import TrainConfig
 from models.algos import AgentConfig, HybridAgent
 from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from models.perf import configure_cpu
 from models.replay import ReplayBuffer
 
 CHECKPOINT_FORMAT = 1
@@ -74,7 +75,7 @@ class JsonlLog:
 
 class Trainer:
     def __init__(self, cfg: TrainConfig, run_dir: Path, resume: bool = False):
-        torch.set_num_threads(2)
+        self.cpu = configure_cpu(cfg.threads)
         self.cfg, self.run_dir = cfg, Path(run_dir)
         self.envs = make_envs(
             cfg.objects,

@@ -15,13 +15,14 @@ Resume: :meth:`save` / :meth:`load` write the filled part and the sampling RNG s
 from __future__ import annotations
 
 import os
-import tempfile
 import warnings
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import torch
+
+from sim.atomic import atomic_write
 
 FEATURE_DIM = 4
 
@@ -187,16 +188,8 @@ class ReplayBuffer:
         n = len(self)
         meta = np.array([self.capacity, self.n_obj, self.n_bg, self.pos, int(self.full)], dtype=np.int64)
         rng_state = np.frombuffer(repr(self.rng.bit_generator.state).encode(), dtype=np.uint8)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, meta=meta, rng=rng_state, **{k: getattr(self, k)[:n] for k in self._ARRAYS})
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        arrays = {k: getattr(self, k)[:n] for k in self._ARRAYS}
+        atomic_write(path, lambda f: np.savez(f, meta=meta, rng=rng_state, **arrays))
 
     @classmethod
     def load(cls, path: str | os.PathLike, device: str = "cpu") -> ReplayBuffer:
