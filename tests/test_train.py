@@ -38,7 +38,15 @@ def test_train_resume_eval_export(tmp_path):
     run = tmp_path / "run"
     r = hydo("train", "--config", str(cfg), "--algo", "hydo-cm", "--seed", "3", "--out", str(run))
     assert r.returncode == 0, r.stderr[-2000:]
-    for name in ("config.json", "command.txt", "system.json", "metrics.jsonl", "eval.jsonl", "checkpoint.pt", "replay.npz"):
+    for name in (
+        "config.json",
+        "command.txt",
+        "system.json",
+        "metrics.jsonl",
+        "eval.jsonl",
+        "checkpoint.pt",
+        "replay.npz",
+    ):
         assert (run / name).is_file(), name
     config = json.loads((run / "config.json").read_text())
     assert config["algo"] == "hydo-cm" and config["seed"] == 3 and config["agent"]["feature_dim"] == 16
