@@ -411,6 +411,14 @@ def evaluate(
     ] = None,
     video: Annotated[Path | None, typer.Option("--video", help="Render the episodes to this .mp4.")] = None,
     video_episodes: Annotated[int, typer.Option(help="Episodes to render into --video.")] = 3,
+    feasible_only: Annotated[
+        bool,
+        typer.Option(
+            "--feasible-only/--any-point",
+            help="Learned policies choose among contact points whose push passes the workspace gate "
+            "(as in training and deploy); --any-point takes the plain argmax (refused pushes cost a step).",
+        ),
+    ] = True,
 ) -> None:
     from hydo_cli.policies import load_policy
     from hydo_cli.rollout import run_episodes
@@ -442,7 +450,7 @@ def evaluate(
     splits = [task_def.name] if task_def else list(COMPARE_SPLITS) if compare else [objects]
 
     # 2. load every target first: a bad one fails in a second, not after the others ran
-    loaded = [load_policy(t, seed=seed) for t in targets]
+    loaded = [load_policy(t, seed=seed, feasible_only=feasible_only) for t in targets]
 
     # 3. run: same episodes for every run; envs per split and point counts
     frames: list = []
@@ -520,6 +528,7 @@ def evaluate(
         "targets": list(targets),
         "splits": splits,
         "compare": compare,
+        "feasible_only": feasible_only,
         "task": None
         if task_def is None
         else {

@@ -21,8 +21,10 @@ class LoadedPolicy:
     method: str = ""  # what --compare groups by: the run's / manifest's algo, or the baseline's name
 
 
-def load_policy(target: str, seed: int = 0) -> LoadedPolicy:
-    """A baseline name, a run directory (its latest checkpoint) or a checkpoint file."""
+def load_policy(target: str, seed: int = 0, feasible_only: bool = True) -> LoadedPolicy:
+    """A baseline name, a run directory (its latest checkpoint) or a checkpoint file.
+
+    ``feasible_only``: learned policies choose among points whose primitive passes the workspace gate."""
     if target in BASELINES:
         return LoadedPolicy(baseline_policy(target, seed), None, None, target == "random", target, target)
     path = Path(target)
@@ -32,7 +34,7 @@ def load_policy(target: str, seed: int = 0) -> LoadedPolicy:
             "checkpoint or model folder"
         )
     if path.is_dir() and (path / "manifest.json").exists():
-        return load_onnx_policy(path, seed)
+        return load_onnx_policy(path, seed, feasible_only)
     if path.is_dir() and not (path / "checkpoint.pt").exists():
         what = (
             "has .onnx files but no manifest.json: re-export it"
@@ -44,10 +46,10 @@ def load_policy(target: str, seed: int = 0) -> LoadedPolicy:
         raise HydoError(f"eval target '{target}' is one graph of a model: give its folder ({path.parent})")
     from hydo_cli.train import load_agent_policy
 
-    return load_agent_policy(path, seed)
+    return load_agent_policy(path, seed, feasible_only)
 
 
-def load_onnx_policy(folder: Path, seed: int) -> LoadedPolicy:
+def load_onnx_policy(folder: Path, seed: int, feasible_only: bool = True) -> LoadedPolicy:
     """An exported model folder, run through onnxruntime (``robot.onnx_policy``, no torch)."""
     import numpy as np
 
@@ -59,7 +61,8 @@ def load_onnx_policy(folder: Path, seed: int) -> LoadedPolicy:
     def policy(observations):
         points = np.stack([o["points"] for o in observations])
         features = np.stack([o["features"] for o in observations])
-        out = model.decide(points, features, model.noise(len(observations), rng))
+        normals = np.stack([o["normals"] for o in observations]) if feasible_only else None
+        out = model.decide(points, features, model.noise(len(observations), rng), normals)
         return list(zip(out["index"].tolist(), out["motion"], strict=True))
 
     return LoadedPolicy(

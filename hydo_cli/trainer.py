@@ -50,13 +50,15 @@ def stack_obs(observations: list[dict[str, np.ndarray]]) -> tuple[torch.Tensor, 
     return points, features
 
 
-def agent_policy(agent: HybridAgent, mode: str, generator: torch.Generator):
-    """Wrap ``agent.act`` as a batched ``hydo_cli.rollout`` policy."""
+def agent_policy(agent: HybridAgent, mode: str, generator: torch.Generator, feasible_only: bool = True):
+    """Wrap ``agent.act`` as a batched ``hydo_cli.rollout`` policy (``feasible_only``: choose among
+    points whose primitive passes the workspace gate, see ``HybridAgent.act``)."""
 
     def policy(observations):
         points, features = stack_obs(observations)
+        normals = torch.from_numpy(np.stack([o["normals"] for o in observations])) if feasible_only else None
         with torch.no_grad():
-            index, motion, _ = agent.act(points, features, mode=mode, generator=generator)
+            index, motion, _ = agent.act(points, features, mode=mode, generator=generator, normals=normals)
         return list(zip(index.tolist(), motion.numpy(), strict=True))
 
     return policy
@@ -327,10 +329,10 @@ def load_agent(path: Path) -> tuple[HybridAgent, TrainConfig, str]:
     return agent, cfg, command
 
 
-def load_policy_from_checkpoint(path: Path, seed: int) -> LoadedPolicy:
+def load_policy_from_checkpoint(path: Path, seed: int, feasible_only: bool = True) -> LoadedPolicy:
     """A run directory or checkpoint file → eval-mode batched policy."""
     agent, cfg, _ = load_agent(path)
-    policy = agent_policy(agent, "eval", torch.Generator().manual_seed(seed))
+    policy = agent_policy(agent, "eval", torch.Generator().manual_seed(seed), feasible_only)
     return LoadedPolicy(
         policy, cfg.n_obj, cfg.n_bg, agent.motion_policy.stochastic_eval, f"{cfg.algo} ({path})", cfg.algo
     )

@@ -54,6 +54,7 @@ from models.motion import (
     make_motion_policy,
 )
 from models.replay import ReplayBatch
+from sim.primitive import SIM_WORKSPACE, Workspace, feasible_points, mask_infeasible
 
 
 @dataclass(frozen=True)
@@ -423,6 +424,8 @@ class HybridAgent:
         features: torch.Tensor,
         mode: str = "explore",
         generator: torch.Generator | None = None,
+        normals: torch.Tensor | None = None,
+        workspace: Workspace = SIM_WORKSPACE,
     ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
         """Choose ``(index (B,) int64, motion (B, 3) in [-1, 1])`` for a batch of observations.
 
@@ -437,7 +440,9 @@ class HybridAgent:
           ``generator`` to reproduce it.
 
         Q at each point is scored on the motion proposed at that point (TD3: Q1, as HACMan; SAC: the
-        twin minimum). ``info``: ``q (B, N_obj)``, ``location_probs (B, N_obj)``, ``motions (B, N_obj,
+        twin minimum). With the object points' unit ``normals (B, N_obj, 3)``, the location is chosen
+        among the points whose push can run: inside the ``workspace``, hand clear of the observed cloud
+        and the bin at the start (``sim.primitive.feasible_points``; all points if none can). ``info``: ``q (B, N_obj)``, ``location_probs (B, N_obj)``, ``motions (B, N_obj,
         3)``, ``motion_log_prob (B,)`` (log-prob estimate of the chosen point's motion).
         """
         if mode not in MODES:
@@ -451,13 +456,19 @@ class HybridAgent:
         motions, log_prob = self.motion_policy.sample(f, noise, deterministic=deterministic)  # (B, N_obj, 3)
         q_twin = self.critic(f, motions)  # (B, N_obj, 2)
         q = q_twin.amin(-1) if self.is_sac else q_twin[..., 0]  # (B, N_obj)
-        probs, _ = location_policy(q, self.alpha_loc)  # (B, N_obj)
+        q_select = q
+        if normals is not None:
+            pts = points.numpy()
+            feasible = feasible_points(pts[:, :n], normals.numpy(), motions.numpy(), pts, workspace)
+            q_select = torch.from_numpy(mask_infeasible(q.numpy(), feasible)).to(q.dtype)
+        probs, _ = location_policy(q_select, self.alpha_loc)  # (B, N_obj)
         if mode == "eval":
-            index = q.argmax(-1)  # (B,)
+            index = q_select.argmax(-1)  # (B,)
         else:
             index = torch.multinomial(probs, 1, generator=generator).squeeze(-1)  # (B,)
             if not self.is_sac and cfg.epsilon_greedy > 0:
-                uniform = torch.randint(0, n, (b,), generator=generator)
+                allowed = torch.isfinite(q_select).to(q.dtype)  # uniform over the feasible points
+                uniform = torch.multinomial(allowed, 1, generator=generator).squeeze(-1)
                 explore_uniform = torch.rand(b, generator=generator) < cfg.epsilon_greedy
                 index = torch.where(explore_uniform, uniform, index)
         rows = torch.arange(b)

@@ -415,7 +415,16 @@ class Deployment:
                 obs = observation(seg, reg.T, self.policy.n_obj, self.policy.n_bg, self.rng)
                 self.gate.check_observation(obs, self.policy.n_obj, self.policy.n_bg)
                 t0 = time.perf_counter()
-                index, motion, _ = self.policy.act(obs["points"], obs["features"], self.rng)
+                # choose among points whose push can start clear of the cloud and the bin (as in
+                # training); the gate below still checks the chosen plan in full
+                index, motion, _ = self.policy.act(
+                    obs["points"],
+                    obs["features"],
+                    self.rng,
+                    normals=obs["normals"],
+                    workspace=self.cell.workspace,
+                    bin_box=(self.cell.bin_low, self.cell.bin_high),
+                )
                 rec.policy_s = time.perf_counter() - t0
                 self.gate.check_action(index, motion, self.policy.n_obj)
                 point, normal = obs["points"][index], obs["normals"][index]

@@ -21,6 +21,7 @@ import numpy as np
 from robot.errors import InputError, ModelLoadError
 from robot.onnx_interface import FILES, FORMAT, MANIFEST_KEYS
 from sim.contract import FEATURE_DIM, OBS_CONTRACT_VERSION
+from sim.primitive import SIM_WORKSPACE, Workspace, feasible_points, mask_infeasible
 
 
 def sha256_file(path: Path) -> str:
@@ -125,8 +126,20 @@ class OnnxPolicy:
             if not np.all(np.isfinite(a)):
                 raise InputError(f"`{name}` contains NaN or inf")
 
-    def decide(self, points: np.ndarray, features: np.ndarray, noise: np.ndarray) -> dict[str, np.ndarray]:
+    def decide(
+        self,
+        points: np.ndarray,
+        features: np.ndarray,
+        noise: np.ndarray,
+        normals: np.ndarray | None = None,
+        workspace: Workspace = SIM_WORKSPACE,
+        bin_box: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> dict[str, np.ndarray]:
         """One batched decision. ``points (B, N, 3)``, ``features (B, N, 4)``, ``noise (B, N_obj, S, 3)``.
+
+        With the object points' ``normals (B, N_obj, 3)``, the argmax runs over the points whose push
+        can run (``sim.primitive.feasible_points`` with ``workspace`` and ``bin_box``, as
+        ``HybridAgent.act``; all points if none can).
 
         Returns ``index (B,)``, ``motion (B, 3)``, ``motions (B, N_obj, 3)``, ``q (B, N_obj)``.
         """
@@ -139,7 +152,14 @@ class OnnxPolicy:
         if not (np.all(np.isfinite(motions)) and np.all(np.isfinite(q_twin))):
             raise InputError("the policy produced NaN or inf (motion or Q): refusing to act")
         q = q_twin.min(-1) if self.manifest["q_reduction"] == "min" else q_twin[..., 0]
-        index = q.argmax(-1)
+        q_select = q
+        if normals is not None:
+            normals = np.asarray(normals, dtype=np.float32)
+            if normals.shape != motions.shape or not np.all(np.isfinite(normals)):
+                raise InputError(f"`normals` must be finite with shape {motions.shape}, got {normals.shape}")
+            feasible = feasible_points(points[:, : self.n_obj], normals, motions, points, workspace, bin_box)
+            q_select = mask_infeasible(q, feasible)
+        index = q_select.argmax(-1)
         rows = np.arange(len(index))
         return {"index": index, "motion": motions[rows, index], "motions": motions, "q": q}
 
@@ -149,7 +169,17 @@ class OnnxPolicy:
             np.float32
         )
 
-    def act(self, points: np.ndarray, features: np.ndarray, rng: np.random.Generator):
-        """One observation (``points (N, 3)``, ``features (N, 4)``) → ``(index, motion (3,), info)``."""
-        out = self.decide(points[None], features[None], self.noise(1, rng))
+    def act(
+        self,
+        points: np.ndarray,
+        features: np.ndarray,
+        rng: np.random.Generator,
+        normals: np.ndarray | None = None,
+        workspace: Workspace = SIM_WORKSPACE,
+        bin_box: tuple[np.ndarray, np.ndarray] | None = None,
+    ):
+        """One observation (``points (N, 3)``, ``features (N, 4)``, optional ``normals (N_obj, 3)``)
+        → ``(index, motion (3,), info)``."""
+        nrm = None if normals is None else np.asarray(normals)[None]
+        out = self.decide(points[None], features[None], self.noise(1, rng), nrm, workspace, bin_box)
         return int(out["index"][0]), out["motion"][0], {k: v[0] for k, v in out.items()}

@@ -69,21 +69,36 @@ SIM_WORKSPACE = Workspace(
 def primitive_waypoints(
     point: np.ndarray, normal: np.ndarray, motion: np.ndarray, floor_z: float = BIN_FLOOR_Z
 ) -> np.ndarray:
-    """Fingertip waypoints (N_WAYPOINTS, 3) for contact ``point`` (3,), unit ``normal`` (3,) and
-    ``motion`` (3,) in [-1, 1] (clipped to that range: it is the policy's squashed output)."""
+    """Fingertip waypoints (..., N_WAYPOINTS, 3) for contact ``point`` (..., 3), unit ``normal`` (..., 3)
+    and ``motion`` (..., 3) in [-1, 1] (clipped to that range: it is the policy's squashed output).
+
+    Leading dimensions broadcast, so one call plans a primitive at every point of a cloud."""
     p = np.asarray(point, dtype=np.float64)
     n = np.asarray(normal, dtype=np.float64)
-    n = n / max(np.linalg.norm(n), 1e-9)
+    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-9)
     m = np.clip(np.asarray(motion, dtype=np.float64), -1.0, 1.0)
-    w = np.empty((N_WAYPOINTS, 3))
-    w[0] = p + PRE_CONTACT_OFFSET_M * n
-    w[1] = p + APPROACH_OFFSET_M * n
-    w[2] = p
+    p, n, m = np.broadcast_arrays(p, n, m)
+    w = np.empty((*p.shape[:-1], N_WAYPOINTS, 3))
+    w[..., 0, :] = p + PRE_CONTACT_OFFSET_M * n
+    w[..., 1, :] = p + APPROACH_OFFSET_M * n
+    w[..., 2, :] = p
     for k in range(1, N_PUSH_STEPS + 1):
-        w[2 + k] = p + k * PUSH_STEP_M * m
-    w[:, 2] = np.maximum(w[:, 2], floor_z + FLOOR_CLEARANCE_M)
-    w[-1] = w[-2] + [0.0, 0.0, RETRACT_HEIGHT_M]
+        w[..., 2 + k, :] = p + k * PUSH_STEP_M * m
+    w[..., 2] = np.maximum(w[..., 2], floor_z + FLOOR_CLEARANCE_M)
+    w[..., -1, :] = w[..., -2, :]
+    w[..., -1, 2] += RETRACT_HEIGHT_M
     return w
+
+
+def plans_inside(waypoints: np.ndarray, workspace: Workspace = SIM_WORKSPACE) -> np.ndarray:
+    """Boolean (...) : which plans ``waypoints`` (..., K, 3) ``check_plan`` would accept.
+
+    The vectorised form of the workspace gate, for choosing among candidate plans (the location
+    policy's feasible points); executing a plan still goes through ``check_plan``."""
+    w = np.asarray(waypoints, dtype=np.float64)
+    lo, hi = np.asarray(workspace.low) - 1e-9, np.asarray(workspace.high) + 1e-9
+    ok = np.isfinite(w).all(-1) & (w >= lo).all(-1) & (w <= hi).all(-1)  # (..., K)
+    return ok.all(-1)
 
 
 def check_plan(waypoints: np.ndarray, workspace: Workspace = SIM_WORKSPACE) -> None:
@@ -108,3 +123,76 @@ def check_plan(waypoints: np.ndarray, workspace: Workspace = SIM_WORKSPACE) -> N
                 raise PrimitiveRejected(
                     f"waypoint {i} {name}={wp[axis]:.3f} m is above the workspace bound {hi[axis]:.3f} m"
                 )
+
+
+#: The hand's collision boxes as (centre, half-size) relative to the fingertip at a start waypoint,
+#: metres, gripper pointing down: the closed finger pads and the palm (sim/assets/hand.xml; a test
+#: checks the two agree). The palm is 20 cm wide along y.
+HAND_BOXES = (
+    ((0.0, 0.0, 0.022), (0.012, 0.03, 0.022)),
+    ((0.0, 0.0, 0.092), (0.0315, 0.102, 0.046)),
+)
+START_TOLERANCE_M = 0.003  # overlap tolerated at the start pose (the simulator's START_PENETRATION_M)
+
+
+def start_clear(
+    start: np.ndarray,
+    cloud: np.ndarray,
+    bin_low: np.ndarray = (-BIN_INNER_SIZE_M[0] / 2, -BIN_INNER_SIZE_M[1] / 2, BIN_FLOOR_Z),
+    bin_high: np.ndarray = (
+        BIN_INNER_SIZE_M[0] / 2,
+        BIN_INNER_SIZE_M[1] / 2,
+        BIN_FLOOR_Z + BIN_INNER_SIZE_M[2],
+    ),
+) -> np.ndarray:
+    """Boolean (B, N): whether the hand placed at each ``start`` (B, N, 3) fingertip position stays
+    clear of the observed ``cloud`` (B, M, 3) and of the bin's walls (inner box ``bin_low`` ..
+    ``bin_high``, the rim at ``bin_high[2]``).
+
+    A point-cloud approximation of the simulator's start-pose collision test (``sim.scene``), which
+    stays the authority: it catches the common refusals (the palm against a wall, the fingers inside
+    the object) before they cost a primitive."""
+    start = np.asarray(start, dtype=np.float64)[..., None, :]  # (B, N, 1, 3)
+    cloud = np.asarray(cloud, dtype=np.float64)[:, None, :, :]  # (B, 1, M, 3)
+    lo_bin, hi_bin = np.asarray(bin_low, float), np.asarray(bin_high, float)
+    clear = np.ones(start.shape[:2], dtype=bool)
+    for centre, half in HAND_BOXES:
+        c, h = start[..., 0, :] + centre, np.asarray(half)  # (B, N, 3)
+        below_rim = c[..., 2] - h[2] < hi_bin[2] - START_TOLERANCE_M
+        inside = (
+            (c[..., :2] - h[:2] >= lo_bin[:2] - START_TOLERANCE_M)
+            & (c[..., :2] + h[:2] <= hi_bin[:2] + START_TOLERANCE_M)
+        ).all(-1)
+        clear &= inside | ~below_rim
+        hit = (np.abs(cloud - c[..., None, :]) < h - START_TOLERANCE_M).all(-1).any(-1)  # (B, N)
+        clear &= ~hit
+    return clear
+
+
+def feasible_points(
+    points: np.ndarray,
+    normals: np.ndarray,
+    motions: np.ndarray,
+    cloud: np.ndarray | None = None,
+    workspace: Workspace = SIM_WORKSPACE,
+    bin_box: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Boolean (B, N_obj): whether the primitive at each object point can run.
+
+    ``points``, ``normals``, ``motions`` (B, N_obj, 3): contact candidates and the motion the policy
+    proposes at each. A plan must pass the workspace gate and, with the observed ``cloud`` (B, M, 3),
+    start with the hand clear of it and of the bin (``bin_box`` = (low, high), default the simulated
+    bin). The location policy uses it to choose among points whose push can run: a refused push
+    wastes a primitive and, for a deterministic policy, repeats until the episode times out."""
+    waypoints = primitive_waypoints(points, normals, motions, workspace.floor_z)
+    ok = plans_inside(waypoints, workspace)
+    if cloud is not None:
+        ok &= start_clear(waypoints[..., 0, :], cloud, *(bin_box or ()))
+    return ok
+
+
+def mask_infeasible(q: np.ndarray, feasible: np.ndarray) -> np.ndarray:
+    """``q`` (B, N_obj) with infeasible points set to -inf, except in rows with no feasible point
+    (left as they are: the gate then refuses the plan with its reason)."""
+    feasible = feasible | ~feasible.any(-1, keepdims=True)
+    return np.where(feasible, q, -np.inf)

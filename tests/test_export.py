@@ -160,3 +160,26 @@ def test_cli_export_refuses_bad_checkpoint(tmp_path):
     )
     assert r.returncode == 1 and "bad.pt" in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_onnx_policy_chooses_feasible_points(exported):
+    """With normals, the ONNX argmax runs over points whose push can start (as HybridAgent.act)."""
+    from sim.env import BinEnv
+    from sim.primitive import feasible_points
+
+    policy = OnnxPolicy.load(exported[0])
+    env = BinEnv("train", "planar", n_obj=policy.n_obj, n_bg=policy.n_bg)
+    rng = np.random.default_rng(0)
+    masked_rows = 0
+    for ep in range(12):
+        obs, _ = env.reset(seed=ep)
+        pts, feats, nrm = obs["points"][None], obs["features"][None], obs["normals"][None]
+        noise = policy.noise(1, rng)
+        out = policy.decide(pts, feats, noise, nrm)
+        feasible = feasible_points(pts[:, : policy.n_obj], nrm, out["motions"], pts)
+        if feasible.any():
+            assert feasible[0, out["index"][0]]
+        plain = policy.decide(pts, feats, noise)  # without normals: the plain argmax of Q
+        assert plain["index"][0] == out["q"].argmax(-1)[0]
+        masked_rows += not feasible[0, plain["index"][0]]
+    assert masked_rows > 0  # the mask changed at least one decision: the test has material

@@ -116,7 +116,7 @@ def push_towards_robot(dep: Deployment, motion=(-1.0, 0.0, 0.0)):
     calls = {"n": 0}
     motions = motion if isinstance(motion, list) else None
 
-    def act(points, features, rng):
+    def act(points, features, rng, **feasibility):  # scripted: ignores the feasibility inputs
         n_obj = dep.policy.n_obj
         obj = points[:n_obj]
         z_ok = obj[:, 2] > dep.cell.floor_z + 0.015

@@ -1,0 +1,115 @@
+"""Feasible contact points: the location policy's pre-check of a push against the workspace gate and
+the simulator's start-pose collision test, and its use by the torch agent and the ONNX policy."""
+
+import numpy as np
+import pytest
+import torch
+
+from models.algos import AgentConfig, HybridAgent
+from sim.env import BinEnv
+from sim.objects import load_objects
+from sim.primitive import (
+    HAND_BOXES,
+    START_TOLERANCE_M,
+    PrimitiveRejected,
+    check_plan,
+    feasible_points,
+    mask_infeasible,
+    plans_inside,
+    primitive_waypoints,
+)
+from sim.scene import START_PENETRATION_M, BinScene
+
+
+def test_hand_boxes_match_the_simulated_hand():
+    scene = BinScene(load_objects("cube")[0])
+    m = scene.model
+    for name, (centre, half) in zip(("hand_fingers", "hand_palm"), HAND_BOXES, strict=True):
+        g = m.geom(name)
+        np.testing.assert_allclose(g.pos, centre, atol=1e-9, err_msg=name)
+        np.testing.assert_allclose(g.size, half, atol=1e-9, err_msg=name)
+    assert START_TOLERANCE_M == START_PENETRATION_M
+
+
+def test_batched_waypoints_and_gate_agree_with_the_single_plan_versions():
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-0.25, 0.25, (3, 40, 3))
+    n, m = rng.normal(size=(3, 40, 3)), rng.uniform(-1.2, 1.2, (3, 40, 3))
+    w, ok = primitive_waypoints(p, n, m), plans_inside(primitive_waypoints(p, n, m))
+    for b in range(3):
+        for i in range(40):
+            wi = primitive_waypoints(p[b, i], n[b, i], m[b, i])
+            np.testing.assert_allclose(w[b, i], wi)
+            try:
+                check_plan(wi)
+                accepted = True
+            except PrimitiveRejected:
+                accepted = False
+            assert ok[b, i] == accepted
+    assert 0.1 < ok.mean() < 0.9  # both outcomes are exercised
+
+
+def test_prediction_matches_the_simulator_on_random_pushes():
+    """Random pushes on the training objects: every push predicted infeasible is refused by the
+    simulator, and most refusals are predicted (the rest: hand clear of the sparse cloud but not of
+    the mesh)."""
+    env = BinEnv("train", "planar")
+    rng = np.random.default_rng(1)
+    counts = {"predicted_refusal": 0, "refused": 0, "caught": 0, "false_refusal": 0}
+    for ep in range(40):
+        obs, _ = env.reset(seed=ep)
+        for _ in range(4):
+            i, motion = int(rng.integers(env.n_obj)), rng.uniform(-1, 1, 3).astype(np.float32)
+            motions = np.broadcast_to(motion, (1, env.n_obj, 3))
+            pred = feasible_points(
+                obs["points"][None, : env.n_obj], obs["normals"][None], motions, obs["points"][None]
+            )
+            obs, _, term, trunc, info = env.step((i, motion))
+            counts["predicted_refusal"] += not pred[0, i]
+            counts["refused"] += info["rejected"]
+            counts["caught"] += info["rejected"] and not pred[0, i]
+            counts["false_refusal"] += (not info["rejected"]) and not pred[0, i]
+            if term or trunc:
+                break
+    assert counts["refused"] >= 20, counts  # random pushes are refused often: the test has material
+    assert counts["false_refusal"] == 0, counts
+    assert counts["caught"] >= 0.8 * counts["refused"], counts
+
+
+def test_mask_keeps_rows_without_any_feasible_point():
+    q = np.array([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
+    feasible = np.array([[True, True, False], [False, False, False]])
+    out = mask_infeasible(q, feasible)
+    assert out[0].argmax() == 1 and np.isneginf(out[0, 2])
+    np.testing.assert_array_equal(out[1], q[1])
+
+
+@pytest.mark.parametrize("algo", ["hacman", "hydo-cm"])
+def test_agent_only_chooses_feasible_points(algo):
+    env = BinEnv("train", "planar", n_obj=32, n_bg=32)
+    agent = HybridAgent(
+        AgentConfig(
+            algo=algo,
+            n_obj=32,
+            n_bg=32,
+            feature_dim=16,
+            encoder_hidden=16,
+            encoder_global=16,
+            actor_hidden=16,
+            critic_hidden=16,
+        )
+    )
+    g = torch.Generator().manual_seed(0)
+    chosen_infeasible = 0
+    for ep in range(12):
+        obs, _ = env.reset(seed=ep)
+        pts, feats = torch.from_numpy(obs["points"][None]), torch.from_numpy(obs["features"][None])
+        normals = torch.from_numpy(obs["normals"][None])
+        for mode in ("explore", "eval"):
+            index, _, info = agent.act(pts, feats, mode=mode, generator=g, normals=normals)
+            feasible = feasible_points(
+                obs["points"][None, :32], obs["normals"][None], info["motions"].numpy(), obs["points"][None]
+            )
+            if feasible.any():
+                chosen_infeasible += not feasible[0, int(index[0])]
+    assert chosen_infeasible == 0
