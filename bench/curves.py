@@ -4,7 +4,8 @@
 
 Reads each run's ``eval.jsonl`` (written by ``hydo train`` at every evaluation) and ``config.json``,
 groups runs by (algo, goals, objects), and prints per group the mean (min-max over seeds) success
-rate at each evaluation step, with the wall-clock minutes at which it was measured.
+rate at each evaluation step, with the wall-clock minutes at which it was measured, and the success
+rate vs wall-clock minutes (each seed's latest evaluation at or before every ``--minute-step``).
 """
 
 from __future__ import annotations
@@ -26,10 +27,39 @@ def load_run(run: Path) -> dict:
     return {"run": str(run), "config": cfg, "evals": rows}
 
 
+def minutes_curve(runs: list[dict], step: float) -> list[dict]:
+    """Success vs wall-clock minutes: at each multiple of ``step`` minutes (up to the longest run),
+    every seed's latest evaluation at or before it (seeds that had none yet are left out)."""
+    longest = max((e["wall_s"] for r in runs for e in r["evals"]), default=0.0) / 60
+    rows = []
+    for k in range(1, int(np.ceil(longest / step - 1e-9)) + 1):
+        mark = min(k * step, longest)
+        at = [
+            [e for e in r["evals"] if e["wall_s"] / 60 <= mark + 1e-6][-1]
+            for r in runs
+            if any(e["wall_s"] / 60 <= mark + 1e-6 for e in r["evals"])
+        ]
+        if not at:
+            continue
+        sr = np.array([e["success_rate"] for e in at])
+        rows.append(
+            {
+                "minutes": mark,
+                "env_steps_mean": float(np.mean([e["env_steps"] for e in at])),
+                "success_mean": float(sr.mean()),
+                "success_min": float(sr.min()),
+                "success_max": float(sr.max()),
+                "seeds": len(at),
+            }
+        )
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--minute-step", type=float, default=10.0, help="spacing of the vs-minutes table")
     args = ap.parse_args()
     from rich.console import Console
     from rich.table import Table
@@ -76,7 +106,33 @@ def main() -> None:
                 str(at[0]["episodes"]),
             )
         console.print(table)
-        out[f"{algo}/{goals}/{objects}"] = {"runs": [r["run"] for r in runs], "curve": curve}
+        by_minutes = minutes_curve(runs, args.minute_step)
+        table = Table(title=f"{algo}  {goals} goals  objects={objects}: success vs wall-clock minutes")
+        for col in ("minutes", "env steps (mean)", "success mean", "min", "max", "seeds"):
+            table.add_column(col, justify="right")
+        for row in by_minutes:
+            table.add_row(
+                f"{row['minutes']:.1f}",
+                f"{row['env_steps_mean']:.0f}",
+                f"{row['success_mean']:.0%}",
+                f"{row['success_min']:.0%}",
+                f"{row['success_max']:.0%}",
+                str(row["seeds"]),
+            )
+        console.print(table)
+        final = [r["evals"][-1] for r in runs if r["evals"]]
+        out[f"{algo}/{goals}/{objects}"] = {
+            "runs": [r["run"] for r in runs],
+            "curve": curve,
+            "vs_minutes": by_minutes,
+            "final": [
+                {
+                    "run": r["run"],
+                    **{k: e[k] for k in ("env_steps", "updates", "wall_s", "success_rate", "episodes")},
+                }
+                for r, e in zip(runs, final, strict=True)
+            ],
+        }
     if args.json:
         atomic_write_text(args.json, json.dumps(out, indent=2))
         print(f"wrote {args.json}")
