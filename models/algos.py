@@ -467,8 +467,11 @@ class HybridAgent:
         else:
             index = torch.multinomial(probs, 1, generator=generator).squeeze(-1)  # (B,)
             if not self.is_sac and cfg.epsilon_greedy > 0:
-                allowed = torch.isfinite(q_select).to(q.dtype)  # uniform over the feasible points
-                uniform = torch.multinomial(allowed, 1, generator=generator).squeeze(-1)
+                if normals is None:
+                    uniform = torch.randint(0, n, (b,), generator=generator)
+                else:  # uniform over the feasible points
+                    allowed = torch.isfinite(q_select).to(q.dtype)
+                    uniform = torch.multinomial(allowed, 1, generator=generator).squeeze(-1)
                 explore_uniform = torch.rand(b, generator=generator) < cfg.epsilon_greedy
                 index = torch.where(explore_uniform, uniform, index)
         rows = torch.arange(b)

@@ -67,6 +67,10 @@ def test_bandit_is_solved(algo):
         lr_actor=3e-4,  # the actor moves slower than the critic fits the sparse bump
         lr_alpha=1e-2,
         tau=0.05,
+        # temperatures for this task's 0/1 reward (the defaults are sized for rewards in metres)
+        location_beta=0.1,
+        init_alpha_loc=0.1,
+        init_alpha_motion=0.01,
     )
     agent = HybridAgent(cfg)
     buf = ReplayBuffer(PREFILL + UPDATES * EXPLORE_ENVS, N_OBJ, N_BG, seed=seed)

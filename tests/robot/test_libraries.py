@@ -9,17 +9,19 @@ import importlib.util
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
 import pytest
 
 from robot.errors import RobotConnectionError
-from robot.executor import Outcome
+from robot.executor import Command, Outcome, RobotMode
 from robot.fakes import FrankyScript, fake_franky, install
 from robot.fr3 import GLOBAL_DYNAMICS_FACTOR, FR3Executor
 from robot.panda import fingertip_to_ee
 from robot.safety import SafetyGate
+from robot.session_log import SessionLog, read_log
 
 
 @pytest.fixture
@@ -100,10 +102,28 @@ def test_real_franky_robot_absent_on_a_closed_loopback_port(cell):
     assert time.time() - t < 30
 
 
+def _when_moving(executor, action, after_s: float = 0.3) -> threading.Thread:
+    """Run ``action`` ``after_s`` into the next motion franky starts (a thread polling ``is_in_control``)."""
+
+    def wait_then_act():
+        deadline = time.time() + 30
+        while not executor.robot.is_in_control and time.time() < deadline:
+            time.sleep(0.005)
+        time.sleep(after_s)
+        action()
+
+    thread = threading.Thread(target=wait_then_act, daemon=True)
+    thread.start()
+    return thread
+
+
 @pytest.mark.skipif(not HAVE_FRANKY_SIM, reason="franky-sim is not installed (the subject of this test)")
 def test_fr3_against_franky_sim_on_loopback(cell, tmp_path):
-    """Connect, limits, an absolute base-frame move down and back, recovery; then the connection
-    lost mid-move when the server stops (franky-sim simulates no collisions or forces)."""
+    """Connect and set the limits; home by a joint move, then a push primitive's waypoints as absolute
+    base-frame moves through ``execute``, each reached; an induced error recovered; then the connection
+    lost mid-move when the server stops. franky-sim simulates no collisions, forces or reflexes (no
+    error flag is ever set, its error recovery always succeeds), so the error induced is the one it can
+    raise: a motion preempted by ``stop()`` from another thread (franky's ``ControlException``)."""
     with socket.socket() as s:
         if s.connect_ex(("127.0.0.1", 1337)) == 0:
             pytest.skip("something already listens on 127.0.0.1:1337")
@@ -122,21 +142,47 @@ def test_fr3_against_franky_sim_on_loopback(cell, tmp_path):
         else:
             pytest.fail("franky-sim did not start listening on 127.0.0.1:1337")
         c = closed_port_cell(cell)
-        from robot.executor import Command
+        gate = SafetyGate(c)
+        plan = gate.plan_primitive(np.array([0.53, 0.0, 0.05]), np.array([1.0, 0, 0]), np.array([-1.0, 0, 0]))
+        with SessionLog(tmp_path / "s") as log, FR3Executor(c, log=log, allow_no_realtime=True) as robot:
+            limits = next(e for e in read_log(tmp_path / "s") if e["event"] == "limits_set")
+            assert limits["collision_force_n"] == c.limits.collision_force
+            assert limits["realtime"] == "ignored (--allow-no-realtime)"
+            assert robot.robot.relative_dynamics_factor.velocity == pytest.approx(GLOBAL_DYNAMICS_FACTOR)
+            assert robot.robot_mode() is RobotMode.idle and robot.current_errors() == ()
 
-        with FR3Executor(c, allow_no_realtime=True) as robot:
+            home = Command(0, "home", tuple(gate.home_position), c.limits.transit_speed, "home")
+            assert robot.send(home).outcome is Outcome.ok and robot.at_home(tol_rad=0.01)
+            # the fingertip from franky's pose and F_T_EE is where the planner's kinematics put it
+            np.testing.assert_allclose(robot.fingertip(), gate.home_position, atol=2e-3)
+
+            result = robot.execute(plan)
+            assert result.outcome is Outcome.ok and len(result.commanded) == len(plan.commands)
+            assert robot.at_home(tol_rad=0.01)
+            done = [e for e in read_log(tmp_path / "s") if e["event"] == "command_done"][1:]
+            assert [e["label"] for e in done] == [cmd.label for cmd in plan.commands]
+            for e, cmd in zip(done, plan.commands, strict=True):  # every waypoint reached, in the base frame
+                np.testing.assert_allclose(e["position"], cmd.target, atol=2e-3, err_msg=cmd.label)
+
             start = robot.fingertip()
-            down = Command(0, "transit", tuple(start - [0, 0, 0.05]), 0.05, "down 5 cm")
-            result = robot.send(down)
-            assert result.outcome is Outcome.ok
-            assert robot.fingertip()[2] == pytest.approx(
-                start[2] - 0.05, abs=0.01
-            )  # base frame: it went down
+            down = Command(1, "transit", tuple(start - [0, 0, 0.10]), 0.05, "down 10 cm")
+            stopper = _when_moving(robot, robot.stop)  # preempts the move: franky raises ControlException
+            stopped = robot.send(down)
+            stopper.join(timeout=30)
+            assert stopped.outcome is Outcome.critical and "preempted" in stopped.message
+            assert stopped.errors == ()  # no error flag: classify_errors() calls that critical
+            assert start[2] - 0.10 + 0.01 < robot.fingertip()[2] < start[2] - 1e-3  # stopped part-way
             robot.recover()
-            server.terminate()
+            assert robot.robot_mode() is RobotMode.idle and robot.current_errors() == ()
+            assert robot.send(down).outcome is Outcome.ok  # the same move again, after recovery
+            assert robot.fingertip()[2] == pytest.approx(start[2] - 0.10, abs=2e-3)  # base frame: down
+
+            back = Command(2, "transit", tuple(start), 0.05, "back up")
+            killer = _when_moving(robot, server.terminate)
+            lost = robot.send(back)
+            killer.join(timeout=30)
+            assert lost.outcome is Outcome.comm_lost and np.isnan(lost.position).all()
             server.wait(timeout=30)
-            back = Command(1, "transit", tuple(start), 0.05, "back up")
-            assert robot.send(back).outcome is Outcome.comm_lost
     finally:
         if server.poll() is None:
             server.terminate()
