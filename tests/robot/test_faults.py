@@ -124,7 +124,7 @@ def test_nan_depth_refused_naming_the_camera(rig, monkeypatch):
 
 def test_nan_policy_output_and_nan_normals_refused(rig, monkeypatch):
     dep = rig.deployment()
-    dep.policy.act = lambda p, f, r: (0, np.array([np.nan, 0.0, 0.0], np.float32), {})
+    dep.policy.act = lambda p, f, r, **feasibility: (0, np.array([np.nan, 0.0, 0.0], np.float32), {})
     with pytest.raises(InputError, match="`motion` is not a finite"):
         rig.run(monkeypatch, dep)
     assert rig.received() == []
