@@ -267,7 +267,7 @@ def train(
     if resume is None:
         run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(run_dir / "config.json", json.dumps(dataclasses.asdict(cfg), indent=2))
-        atomic_write_text(run_dir / "command.txt", shlex.join(sys.argv) + "\n")
+        atomic_write_text(run_dir / "command.txt", shlex.join(["hydo", *sys.argv[1:]]) + "\n")
         atomic_write_text(run_dir / "system.json", json.dumps({**system_info(), **trainer.cpu}, indent=2))
     trainer.run()
 
