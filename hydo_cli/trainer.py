@@ -65,14 +65,31 @@ def agent_policy(agent: HybridAgent, mode: str, generator: torch.Generator, feas
 
 
 class JsonlLog:
-    """Append-only JSON lines, flushed per line: a crash loses at most the line being written."""
+    """Append-only JSON lines, flushed per line: a crash loses at most the line being written.
 
-    def __init__(self, path: Path):
+    With a TensorBoard ``writer``, every numeric field is also logged as ``<tag>/<field>`` against
+    ``env_steps``."""
+
+    def __init__(self, path: Path, writer=None, tag: str = ""):
         self.f = open(path, "a", buffering=1)  # noqa: SIM115
+        self.writer, self.tag = writer, tag
 
     def write(self, row: dict) -> None:
         self.f.write(json.dumps(row) + "\n")
         self.f.flush()
+        if self.writer is not None:
+            for k, v in row.items():
+                if isinstance(v, int | float) and k != "env_steps":
+                    self.writer.add_scalar(f"{self.tag}/{k}", v, global_step=row["env_steps"])
+
+
+def tensorboard_writer(run_dir: Path):
+    """A SummaryWriter on ``run_dir/tensorboard`` when the optional tensorboard package is installed."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        return None
+    return SummaryWriter(str(run_dir / "tensorboard"), flush_secs=30)
 
 
 class Trainer:
@@ -156,8 +173,9 @@ class Trainer:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
         cfg = self.cfg
-        metrics_log = JsonlLog(self.run_dir / "metrics.jsonl")
-        eval_log = JsonlLog(self.run_dir / "eval.jsonl")
+        tb = tensorboard_writer(self.run_dir)
+        metrics_log = JsonlLog(self.run_dir / "metrics.jsonl", tb, "train")
+        eval_log = JsonlLog(self.run_dir / "eval.jsonl", tb, "eval")
         obs = [env.reset(seed=int(self.rng.integers(2**31)))[0] for env in self.envs]
         ep_return = np.zeros(len(self.envs))
         last_metrics: dict[str, float] = {}
@@ -275,6 +293,8 @@ class Trainer:
             interrupted = True
         finally:
             signal.signal(signal.SIGTERM, old_handler)
+            if tb is not None:
+                tb.flush()
         self.wall_s = time.perf_counter() - t_start
         self.save()
         if interrupted:
@@ -289,6 +309,8 @@ class Trainer:
             f"done: {self.env_steps} env steps, {self.updates} updates in "
             f"{self.wall_s / 60:.1f} min; run in {self.run_dir}"
         )
+        if tb is not None:
+            tb.close()
 
     def _eval_and_log(self, eval_log: JsonlLog, t_start: float, progress) -> None:
         summary = self.evaluate()

@@ -16,8 +16,10 @@ warm-up decision. Per step::
                                                                               UnreachableError
     log the step (frames, masks, clouds, obs, action, plan); --dry-run prints the plan and stops here
     result  = robot.execute(plan)        every command logged (fsynced) before it is sent
-    ok -> next step;  reaction_fired / short_of_goal -> checked retract;  reflex -> recovery rules
-    (robot mode decides; once per primitive, three times per episode) + checked retract;
+    ok -> next step;  reaction_fired / short_of_goal -> checked retract, next step (an outcome of
+    the step, not a failure of the run);  reflex -> one recovery decided by the robot mode, checked
+    retract, re-observe (robot-safety.md: at most once per primitive and three times per episode; a
+    reflex beyond that, i.e. one during the retract or the fourth in an episode, stops the run);
     comm_lost / critical -> stop the run with what the person must do.
 
 A refusal (perception, registration, input, plan) stops the run on a real arm; in the twin
@@ -128,6 +130,8 @@ class SessionResult:
     episodes: list[EpisodeResult] = field(default_factory=list)
     steps: list[StepRecord] = field(default_factory=list)
     commands_sent: int = 0
+    force_stops: int = 0  # contact-force stops (reaction_fired): an outcome of a step
+    reflexes: int = 0  # robot reflexes, each recovered once or ending the run
 
     def summary(self) -> dict:
         def mean(xs):
@@ -153,6 +157,8 @@ class SessionResult:
             "mean_policy_s": mean([s.policy_s for s in timed]),
             "mean_execution_s": mean([s.execution_s for s in timed if s.execution_s > 0]),
             "commands_sent": self.commands_sent,
+            "force_stops": self.force_stops,
+            "reflexes": self.reflexes,
         }
 
 
@@ -558,9 +564,10 @@ class Deployment:
                 f"{operator_action(result.errors)}. Not recovered automatically."
             )
         if result.outcome is Outcome.reflex:
+            self.result.reflexes += 1
             mode = robot.robot_mode()
             errors = tuple(result.errors) or robot.current_errors()
-            self.budget.authorise(mode, errors)  # raises RobotFaultError when not allowed
+            self.budget.authorise(mode, errors, where)  # raises RobotFaultError when not allowed
             self.log.event(
                 "recovery",
                 mode=mode.value,
@@ -578,6 +585,7 @@ class Deployment:
                         "the robot stays in reflex mode after recovery: clear it in Desk, then re-run"
                     )
         elif result.outcome is Outcome.reaction_fired:
+            self.result.force_stops += 1
             self.log.event("force_stop", during=where, peak_force_n=result.peak_force)
             self.print(f"contact-force stop during '{where}' ({result.message}): retracting")
         # Never resume the old waypoints: retract along a checked path, then re-observe and re-plan.
@@ -678,6 +686,8 @@ def summary_lines(res: SessionResult) -> list[tuple[str, str]]:
         ("  policy (onnxruntime)", ms(s["mean_policy_s"])),
         ("  execution", "n/a" if s["mean_execution_s"] is None else f"{s['mean_execution_s']:.2f} s"),
         ("motion commands sent", str(s["commands_sent"])),
+        ("contact-force stops", str(s["force_stops"])),
+        ("reflexes", str(s["reflexes"])),
         ("session folder", str(res.folder)),
     ]
     return rows

@@ -229,8 +229,14 @@ class RecoveryBudget:
     def new_primitive(self) -> None:
         self.primitive = 0
 
-    def authorise(self, mode: RobotMode, errors: tuple[str, ...]) -> None:
-        """Raise ``RobotFaultError`` unless an automatic recovery is allowed now; count it."""
+    def authorise(self, mode: RobotMode, errors: tuple[str, ...], during: str = "") -> None:
+        """Raise ``RobotFaultError`` unless an automatic recovery is allowed now; count it.
+
+        A reflex beyond either limit is not recovered automatically, and a robot left in reflex mode
+        cannot move: the run stops and a person inspects the cell. (A second reflex in one primitive
+        is one during the checked retract after the first: the recovery itself failed.)"""
+        what = ", ".join(errors) or mode.value
+        where = f" during '{during}'" if during else ""
         unrecoverable = [e for e in errors if e not in RECOVERABLE_ERRORS]
         if unrecoverable:
             raise RobotFaultError(f"robot error {unrecoverable} is not recovered automatically")
@@ -238,12 +244,13 @@ class RecoveryBudget:
             raise RobotFaultError(f"robot is in mode '{mode.value}': not recovered automatically")
         if self.primitive >= MAX_RECOVERIES_PER_PRIMITIVE:
             raise RobotFaultError(
-                f"a second reflex in one primitive ({', '.join(errors) or mode.value}): stopping; inspect the cell"
+                f"a second reflex in one primitive ({what}{where}): at most {MAX_RECOVERIES_PER_PRIMITIVE} "
+                "automatic recovery per primitive, stopping; guide the arm clear in Desk and inspect the cell"
             )
         if self.episode >= MAX_RECOVERIES_PER_EPISODE:
             raise RobotFaultError(
-                f"reflex number {self.episode + 1} in this episode ({', '.join(errors) or mode.value}): more "
-                f"than {MAX_RECOVERIES_PER_EPISODE} recoveries per episode, stopping; inspect the cell"
+                f"reflex number {self.episode + 1} in this episode ({what}{where}): more than "
+                f"{MAX_RECOVERIES_PER_EPISODE} recoveries per episode, stopping; inspect the cell"
             )
         self.primitive += 1
         self.episode += 1

@@ -9,9 +9,13 @@ field of view. Time step 4 ms: tracking and contact forces match a 2 ms run (the
 :class:`TwinExecutor` drives the arm like panda-python's Cartesian impedance controller: a
 translational spring ``limits.cartesian_stiffness_npm`` and a rotational one on the fingertip
 (pointing down), critically damped, with a null-space spring towards the IK solution of the target,
-the reference moving along each straight move at the command's speed. Every physics step it measures
+the reference moving along each straight move at the command's speed. Like libfranka's torque interface,
+it commands torques with gravity and joint friction compensated (the arm model's ``frictionloss`` is
+zeroed), so the fingertip tracks the waypoints to ~2 mm. Every physics step it measures
 the contact force on the arm: above ``force_stop_n`` the move is stopped (``reaction_fired``), above
 ``collision_force_n`` the twin latches a ``cartesian_reflex`` like the real robot, until ``recover``.
+Either way the arm then holds still for a moment (the real arm stops; a recovery takes longer), so the
+retract that follows does not start inside the contact's transient.
 
 :class:`TwinCamera` renders depth (geom groups 0-1: bin, object, arm, table) with Gaussian noise, the way a
 RealSense frame arrives, and :meth:`TwinWorld.true_mask` gives the ground-truth object mask.
@@ -46,6 +50,7 @@ SETTLE_TOL_M = 0.002  # a move has arrived when the fingertip is this close to i
 SETTLE_MAX_S = 1.0  # ... or after this long once the reference has arrived
 CONTACT_SETTLE_S = 0.2  # (contact and push moves end against the object: do not wait long)
 FORCE_STOP_HOLD_S = 0.1  # after a force stop the arm holds still this long
+REFLEX_HOLD_S = 0.1  # ... and after a reflex (the robot stops and holds in reflex mode until recover())
 OBJECT_SETTLE_MAX_S = 1.5
 FAR_AWAY = np.array([0.0, 0.0, 20.0])  # where the object goes for an empty-bin (background) render
 MAX_RANGE_M = 6.0  # depth beyond this is reported as a hole (0), like a RealSense out of range
@@ -127,7 +132,13 @@ class TwinWorld:
             fovy = float(np.degrees(2 * np.arctan2(cam.height / 2, cam.K[1, 1])))
             wb.add_camera(name=f"cam{i}", pos=cam.T_base_camera[:3, 3].tolist(), quat=q.tolist(), fovy=fovy)
         model = spec.compile()
-        model.dof_damping[[model.jnt_dofadr[model.joint(j).id] for j in JOINTS]] += JOINT_DAMPING
+        arm_dofs = [model.jnt_dofadr[model.joint(j).id] for j in JOINTS]
+        model.dof_damping[arm_dofs] += JOINT_DAMPING
+        # libfranka's torque commands are "without gravity and friction": the robot compensates both
+        # (gravity here by ``gravcomp``). dm-robotics-panda's joint Coulomb friction (up to 1.2 N·m on
+        # joint 7) left uncompensated made every move stop 3-9 mm from its target under the 500 N/m
+        # spring, so the twin's fingertip did not follow the primitive's waypoints.
+        model.dof_frictionloss[arm_dofs] = 0.0
         return model
 
     def load(self, asset: ObjectAsset) -> None:
@@ -453,6 +464,7 @@ class TwinExecutor(Executor):
             if f > lim.collision_force:  # the robot's own reflex: latched until recover()
                 w.mode, w.errors = RobotMode.reflex, ("cartesian_reflex",)
                 self.stop()
+                peak = max(peak, self._hold(REFLEX_HOLD_S))
                 return MoveResult(Outcome.reflex, w.fingertip(), peak, w.errors, f"contact force {f:.1f} N")
             if f > lim.force_stop:  # hydo's contact-force stop: stop here, no robot error
                 self.stop()

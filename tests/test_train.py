@@ -56,6 +56,12 @@ def test_train_resume_eval_export(tmp_path):
     assert "peak_rss_mb" in metrics[-1]
     evals = _lines(run / "eval.jsonl")
     assert [e["env_steps"] for e in evals][:2] == [24, 48] and all(e["episodes"] == 2 for e in evals)
+    # TensorBoard mirror (tensorboard is in the test extra): the eval success rate per evaluation
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run / "tensorboard"))
+    events.Reload()
+    assert [e.step for e in events.Scalars("eval/success_rate")][:2] == [24, 48]
 
     # a second invocation without --resume refuses to overwrite the run
     r = hydo("train", "--config", str(cfg), "--out", str(run))
