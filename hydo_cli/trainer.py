@@ -192,7 +192,7 @@ class Trainer:
 
         old_handler = signal.signal(signal.SIGTERM, on_sigterm)
         progress = Progress(
-            TextColumn(f"[bold]{cfg.algo}[/] {cfg.goals}/{cfg.objects}"),
+            TextColumn(f"[bold]{cfg.algo}[/] {cfg.task or f'{cfg.goals}/{cfg.objects}'}"),
             BarColumn(),
             MofNCompleteColumn(),
             TextColumn("{task.fields[stats]}"),
