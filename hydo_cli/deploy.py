@@ -119,7 +119,8 @@ def deploy(
         typer.Option(
             "--on-refusal",
             help="A refused observation/plan stops the run, or ends the episode. "
-            "Default: stop on real arms, next-episode in the twin.",
+            "Default: stop on real arms, next-episode in the twin (where it also applies to a reflex "
+            "beyond the recovery limits; a real arm always stops the run then).",
         ),
     ] = None,
     replay: Annotated[

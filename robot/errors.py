@@ -45,5 +45,10 @@ class RobotFaultError(RobotError):
     """A robot error that stops the run (critical fault, a reflex that would not clear, too many reflexes)."""
 
 
+class RecoveryLimitError(RobotFaultError):
+    """A recoverable reflex beyond the automatic-recovery limits (robot-safety.md: at most one recovery
+    per primitive, three per episode): a real arm stops the run here."""
+
+
 class RealtimeKernelError(RobotError):
     """No realtime kernel for a real arm and no explicit override."""

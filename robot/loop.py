@@ -24,7 +24,10 @@ warm-up decision. Per step::
 
 A refusal (perception, registration, input, plan) stops the run on a real arm; in the twin
 (``--robot sim``) it ends the episode by default, so that an evaluation over many episodes
-survives a bad decision (``on_refusal``). Either way it is logged and reported in one line.
+survives a bad decision (``on_refusal``). Either way it is logged and reported in one line. The
+same default applies in the twin to a reflex beyond the recovery limits (``RecoveryLimitError``):
+a real arm stops the run there, the twin ends the episode and resets its arm for the next one
+(``--on-refusal stop`` makes the twin stop the run like a real arm).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from robot.errors import (
     CameraError,
     InputError,
     PerceptionError,
+    RecoveryLimitError,
     RegistrationError,
     RobotConnectionError,
     RobotError,
@@ -82,6 +86,7 @@ class DeployConfig:
     seed: int = 0
     allow_no_realtime: bool = False
     on_refusal: str | None = None  # "stop" | "next-episode"; None: stop on arms, next-episode in sim
+    # (in sim it also decides what a reflex beyond the recovery limits does; real arms always stop)
     replay: Path | None = None  # play a recorded session's frames back (implies --dry-run)
     objects: str | None = None  # twin only: object set (default: the model's training objects)
     speed_scale: float = 1.0  # in (0, 1]: every command slower than the cell's speeds by this factor
@@ -132,6 +137,7 @@ class SessionResult:
     commands_sent: int = 0
     force_stops: int = 0  # contact-force stops (reaction_fired): an outcome of a step
     reflexes: int = 0  # robot reflexes, each recovered once or ending the run
+    reflex_limit_episodes: int = 0  # twin: episodes ended by the recovery limits (a real arm stops)
 
     def summary(self) -> dict:
         def mean(xs):
@@ -159,6 +165,7 @@ class SessionResult:
             "commands_sent": self.commands_sent,
             "force_stops": self.force_stops,
             "reflexes": self.reflexes,
+            "reflex_limit_episodes": self.reflex_limit_episodes,
         }
 
 
@@ -479,7 +486,23 @@ class Deployment:
             rec.outcome = result.outcome.value
             primitives += 1
             if result.outcome is not Outcome.ok:
-                self._handle_failure(result, robot)
+                try:
+                    self._handle_failure(result, robot)
+                except RecoveryLimitError as e:
+                    if self.world is None or self.cfg.resolved_on_refusal() == "stop":
+                        raise  # a real arm (or --on-refusal stop): the run stops, a person inspects the cell
+                    # The twin's evaluation: the episode ends here and the next one starts with the arm
+                    # reset at home (a twin-only step; a real arm stops the run at this point).
+                    self.log.event(
+                        "episode_stopped", episode=ep, step=step, error=e.__class__.__name__, message=str(e)
+                    )
+                    self.print(f"episode {ep}: {e} (twin: next episode; a real arm stops the run here)")
+                    rec.seconds = time.perf_counter() - t_step
+                    self.result.steps.append(rec)
+                    self.result.reflex_limit_episodes += 1
+                    return self._end_episode(
+                        ep, False, primitives, last_distance, f"reflex limit: {e}", obj_name
+                    )
             if self.world is not None:
                 self.world.settle_object()
             rec.seconds = time.perf_counter() - t_step
@@ -688,6 +711,10 @@ def summary_lines(res: SessionResult) -> list[tuple[str, str]]:
         ("motion commands sent", str(s["commands_sent"])),
         ("contact-force stops", str(s["force_stops"])),
         ("reflexes", str(s["reflexes"])),
+    ]
+    if s["reflex_limit_episodes"]:
+        rows.append(("episodes ended by the reflex limit (twin)", str(s["reflex_limit_episodes"])))
+    rows += [
         ("session folder", str(res.folder)),
     ]
     return rows

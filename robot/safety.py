@@ -25,7 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from robot.errors import InputError, PerceptionError, RealtimeKernelError, RobotFaultError
+from robot.errors import (
+    InputError,
+    PerceptionError,
+    RealtimeKernelError,
+    RecoveryLimitError,
+    RobotFaultError,
+)
 from robot.executor import RECOVERABLE_ERRORS, Command, RobotMode
 from sim.contract import FEATURE_DIM
 from sim.primitive import N_WAYPOINTS, PUSH_SEGMENTS, PrimitiveRejected, check_plan, primitive_waypoints
@@ -243,12 +249,12 @@ class RecoveryBudget:
         if mode not in (RobotMode.reflex, RobotMode.idle, RobotMode.other):
             raise RobotFaultError(f"robot is in mode '{mode.value}': not recovered automatically")
         if self.primitive >= MAX_RECOVERIES_PER_PRIMITIVE:
-            raise RobotFaultError(
+            raise RecoveryLimitError(
                 f"a second reflex in one primitive ({what}{where}): at most {MAX_RECOVERIES_PER_PRIMITIVE} "
                 "automatic recovery per primitive, stopping; guide the arm clear in Desk and inspect the cell"
             )
         if self.episode >= MAX_RECOVERIES_PER_EPISODE:
-            raise RobotFaultError(
+            raise RecoveryLimitError(
                 f"reflex number {self.episode + 1} in this episode ({what}{where}): more than "
                 f"{MAX_RECOVERIES_PER_EPISODE} recoveries per episode, stopping; inspect the cell"
             )

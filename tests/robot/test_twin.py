@@ -88,6 +88,79 @@ def test_contact_force_stop_on_a_welded_object(world, cell, tmp_path):
         world.weld_object(False)
 
 
+def test_twin_tracks_free_space_moves_to_2_mm(world, cell):
+    """The twin's controller, like libfranka's torque interface, has the arm's joint friction
+    compensated: free moves end on their targets (with dm-robotics-panda's uncompensated joint
+    friction they stopped 2-7 mm short, so the fingertip did not follow the primitive's waypoints)."""
+    place_cube(world, cell)
+    gate = SafetyGate(cell, world.kin)
+    plan = gate.plan_primitive(np.array([0.35, -0.15, 0.05]), np.array([0, 0, 1.0]), np.zeros(3))
+    robot = TwinExecutor(world, cell)
+    with robot:
+        errors = [np.linalg.norm(robot.send(c).position - c.target) for c in plan.commands]
+    assert max(errors) < 0.0025, np.round(np.array(errors) * 1000, 1)
+
+
+def test_palm_on_the_bin_rim_reflex_then_checked_retract(world, cell, tmp_path):
+    """A push 2 cm from the bin wall 6 cm above the floor puts the 20 cm wide palm (as in training's
+    hand) onto the wall's rim: the twin's reflex fires. The arm then stops and holds, so after one
+    recovery the checked retract leaves the rim without a new stop (before, it started inside the
+    impact's transient and stopped again)."""
+    place_cube(world, cell)
+    gate = SafetyGate(cell, world.kin)
+    plan = gate.plan_primitive(np.array([0.40, -0.20, 0.06]), np.array([0, 0, 1.0]), np.zeros(3))
+    with SessionLog(tmp_path / "s") as log, TwinExecutor(world, cell, log=log) as robot:
+        result = robot.execute(plan)
+        assert result.outcome is Outcome.reflex and result.failed.label in ("w1 approach", "w2 contact")
+        assert robot.robot_mode().value == "reflex"
+        robot.recover()
+        retract = robot.execute(gate.plan_retract(robot.fingertip(), robot.joints()))
+        assert retract.outcome is Outcome.ok and retract.peak_force < cell.limits.force_stop
+        assert robot.at_home()
+
+
+def test_twin_reflex_limit_ends_the_episode_a_real_arm_stops_the_run(tiny_model, tmp_path, monkeypatch):
+    """robot-safety.md 13: at most three recoveries per episode, so the fourth reflex stops the run on
+    a real arm (tests/robot/test_faults.py) and in the twin with ``--on-refusal stop``; the twin's
+    evaluation (default) ends that episode instead, counts it, and goes on with the next one."""
+    from robot.errors import RecoveryLimitError
+    from robot.executor import MoveResult, RobotMode
+    from robot.loop import DeployConfig, Deployment
+
+    def scripted_reflex(self, command):  # every contact move ends in a reflex, as on the bin rim
+        if command.kind == "contact":
+            w = self.world
+            w.mode, w.errors = RobotMode.reflex, ("cartesian_reflex",)
+            return MoveResult(Outcome.reflex, w.fingertip(), 45.0, w.errors, "scripted reflex")
+        return original(self, command)
+
+    original = TwinExecutor._move
+    monkeypatch.setattr(TwinExecutor, "_move", scripted_reflex)
+
+    def deployment(name, **cfg):
+        dep = Deployment.prepare(
+            DeployConfig(
+                robot="sim", model=tiny_model, episodes=2, max_steps=4, log_dir=tmp_path / name, **cfg
+            )
+        )
+
+        def act(points, features, rng, **feasibility):  # the highest object point, pushing nowhere
+            return int(np.argmax(points[: dep.policy.n_obj, 2])), np.zeros(3, np.float32), {}
+
+        dep.policy.act = act
+        return dep
+
+    with pytest.raises(RecoveryLimitError, match="reflex number 4 in this episode"):
+        deployment("stop", on_refusal="stop").run()
+    res = deployment("evaluate").run()
+    assert [e.reason.startswith("reflex limit: reflex number 4") for e in res.episodes] == [True, True]
+    s = res.summary()
+    assert s["reflexes"] == 8 and s["reflex_limit_episodes"] == 2
+    lines = read_log(tmp_path / "evaluate")
+    assert [e["episode"] for e in lines if e["event"] == "episode_stopped"] == [0, 1]
+    assert len([e for e in lines if e["event"] == "recovery"]) == 6  # three per episode, then no more
+
+
 def test_unreachable_or_near_joint_limit_plans_refused(world, cell):
     gate = SafetyGate(cell, world.kin)
     with pytest.raises(UnreachableError, match="joint 4 within 0.0\\d+ rad of its limit"):
