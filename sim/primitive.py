@@ -132,6 +132,8 @@ HAND_BOXES = (
     ((0.0, 0.0, 0.022), (0.012, 0.03, 0.022)),
     ((0.0, 0.0, 0.092), (0.0315, 0.102, 0.046)),
 )
+_BIN_LOW = (-BIN_INNER_SIZE_M[0] / 2, -BIN_INNER_SIZE_M[1] / 2, BIN_FLOOR_Z)  # inner box of the simulated bin
+_BIN_HIGH = (BIN_INNER_SIZE_M[0] / 2, BIN_INNER_SIZE_M[1] / 2, BIN_FLOOR_Z + BIN_INNER_SIZE_M[2])
 START_TOLERANCE_M = 0.003  # overlap tolerated at the start pose (the simulator's START_PENETRATION_M)
 
 
@@ -154,19 +156,33 @@ def start_clear(
     the object) before they cost a primitive."""
     start = np.asarray(start, dtype=np.float64)[..., None, :]  # (B, N, 1, 3)
     cloud = np.asarray(cloud, dtype=np.float64)[:, None, :, :]  # (B, 1, M, 3)
-    lo_bin, hi_bin = np.asarray(bin_low, float), np.asarray(bin_high, float)
-    clear = np.ones(start.shape[:2], dtype=bool)
+    clear = within_walls(start[..., 0, :], bin_low, bin_high)
     for centre, half in HAND_BOXES:
         c, h = start[..., 0, :] + centre, np.asarray(half)  # (B, N, 3)
+        hit = (np.abs(cloud - c[..., None, :]) < h - START_TOLERANCE_M).all(-1).any(-1)  # (B, N)
+        clear &= ~hit
+    return clear
+
+
+def within_walls(
+    fingertip: np.ndarray,
+    bin_low: np.ndarray = _BIN_LOW,
+    bin_high: np.ndarray = _BIN_HIGH,
+) -> np.ndarray:
+    """Boolean (...): whether the hand with its fingertip at ``fingertip`` (..., 3) stays off the bin's
+    walls: every hand box below the rim lies inside the inner box (in x and y)."""
+    f = np.asarray(fingertip, dtype=np.float64)
+    lo_bin, hi_bin = np.asarray(bin_low, float), np.asarray(bin_high, float)
+    ok = np.ones(f.shape[:-1], dtype=bool)
+    for centre, half in HAND_BOXES:
+        c, h = f + centre, np.asarray(half)
         below_rim = c[..., 2] - h[2] < hi_bin[2] - START_TOLERANCE_M
         inside = (
             (c[..., :2] - h[:2] >= lo_bin[:2] - START_TOLERANCE_M)
             & (c[..., :2] + h[:2] <= hi_bin[:2] + START_TOLERANCE_M)
         ).all(-1)
-        clear &= inside | ~below_rim
-        hit = (np.abs(cloud - c[..., None, :]) < h - START_TOLERANCE_M).all(-1).any(-1)  # (B, N)
-        clear &= ~hit
-    return clear
+        ok &= inside | ~below_rim
+    return ok
 
 
 def feasible_points(
@@ -181,13 +197,16 @@ def feasible_points(
 
     ``points``, ``normals``, ``motions`` (B, N_obj, 3): contact candidates and the motion the policy
     proposes at each. A plan must pass the workspace gate and, with the observed ``cloud`` (B, M, 3),
-    start with the hand clear of it and of the bin (``bin_box`` = (low, high), default the simulated
+    start with the hand clear of it, and keep the hand off the bin's walls through the push (``bin_box`` = (low, high), default the simulated
     bin). The location policy uses it to choose among points whose push can run: a refused push
     wastes a primitive and, for a deterministic policy, repeats until the episode times out."""
     waypoints = primitive_waypoints(points, normals, motions, workspace.floor_z)
     ok = plans_inside(waypoints, workspace)
     if cloud is not None:
         ok &= start_clear(waypoints[..., 0, :], cloud, *(bin_box or ()))
+        # the whole push, not only its start, keeps the 20 cm palm off the walls: the training hand is
+        # force-limited and tolerates pressing on the rim, a real arm stops (contact-force stop/reflex)
+        ok &= within_walls(waypoints[..., : N_WAYPOINTS - 1, :], *(bin_box or ())).all(-1)
     return ok
 
 

@@ -17,6 +17,8 @@ from sim.primitive import (
     mask_infeasible,
     plans_inside,
     primitive_waypoints,
+    start_clear,
+    within_walls,
 )
 from sim.scene import START_PENETRATION_M, BinScene
 
@@ -50,8 +52,8 @@ def test_batched_waypoints_and_gate_agree_with_the_single_plan_versions():
 
 
 def test_prediction_matches_the_simulator_on_random_pushes():
-    """Random pushes on the training objects: every push predicted infeasible is refused by the
-    simulator, and most refusals are predicted (the rest: hand clear of the sparse cloud but not of
+    """Random pushes on the training objects: every push whose start is predicted in collision (or
+    outside the workspace) is refused by the simulator, and most refusals are predicted (the rest: hand clear of the sparse cloud but not of
     the mesh)."""
     env = BinEnv("train", "planar")
     rng = np.random.default_rng(1)
@@ -61,9 +63,8 @@ def test_prediction_matches_the_simulator_on_random_pushes():
         for _ in range(4):
             i, motion = int(rng.integers(env.n_obj)), rng.uniform(-1, 1, 3).astype(np.float32)
             motions = np.broadcast_to(motion, (1, env.n_obj, 3))
-            pred = feasible_points(
-                obs["points"][None, : env.n_obj], obs["normals"][None], motions, obs["points"][None]
-            )
+            waypoints = primitive_waypoints(obs["points"][None, : env.n_obj], obs["normals"][None], motions)
+            pred = plans_inside(waypoints) & start_clear(waypoints[..., 0, :], obs["points"][None])
             obs, _, term, trunc, info = env.step((i, motion))
             counts["predicted_refusal"] += not pred[0, i]
             counts["refused"] += info["rejected"]
@@ -113,3 +114,17 @@ def test_agent_only_chooses_feasible_points(algo):
             if feasible.any():
                 chosen_infeasible += not feasible[0, int(index[0])]
     assert chosen_infeasible == 0
+
+
+def test_palm_must_stay_off_the_walls_through_the_push():
+    """The 20 cm palm (4.6 cm above the fingertip) over the rim's inside: refused below the rim, fine
+    above it or away from the wall; and feasible_points applies it to every push waypoint."""
+    assert not within_walls(np.array([0.0, -0.2, 0.03]))  # palm reaches y = -0.302 < -0.27 below the rim
+    assert within_walls(np.array([0.0, -0.2, 0.2]))  # palm above the rim
+    assert within_walls(np.array([0.0, 0.0, 0.03]))
+    point, normal = np.array([[[0.0, -0.1, 0.03]]]), np.array([[[0.0, 1.0, 0.0]]])
+    toward_wall, away = np.array([[[0.0, -1.0, 0.0]]]), np.array([[[0.0, 1.0, 0.0]]])
+    cloud = np.zeros((1, 1, 3))  # one point on the floor, far from the hand boxes
+    assert within_walls(primitive_waypoints(point, normal, away)[..., 0, :])  # the start alone is fine
+    assert feasible_points(point, normal, away, cloud)[0, 0]
+    assert not feasible_points(point, normal, toward_wall, cloud)[0, 0]  # push ends at y = -0.19
