@@ -21,6 +21,7 @@ from sim.primitive import (
     within_walls,
 )
 from sim.scene import START_PENETRATION_M, BinScene
+from tests.models.learner_util import SMALL
 
 
 def test_hand_boxes_match_the_simulated_hand():
@@ -88,18 +89,7 @@ def test_mask_keeps_rows_without_any_feasible_point():
 @pytest.mark.parametrize("algo", ["hacman", "hydo-cm"])
 def test_agent_only_chooses_feasible_points(algo):
     env = BinEnv("train", "planar", n_obj=32, n_bg=32)
-    agent = HybridAgent(
-        AgentConfig(
-            algo=algo,
-            n_obj=32,
-            n_bg=32,
-            feature_dim=16,
-            encoder_hidden=16,
-            encoder_global=16,
-            actor_hidden=16,
-            critic_hidden=16,
-        )
-    )
+    agent = HybridAgent(AgentConfig(algo=algo, **{**SMALL, "n_obj": 32, "n_bg": 32}))
     g = torch.Generator().manual_seed(0)
     chosen_infeasible = 0
     for ep in range(12):
