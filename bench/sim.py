@@ -16,6 +16,12 @@ Figures (JSON keys; all single-process, ``OPENBLAS_NUM_THREADS=1``):
 - ``primitive_ms``: executing one accepted primitive (push + settle), ``primitive_physics_steps``
   its mean physics steps.
 - ``physics_steps_per_s``: raw ``mujoco.mj_step`` rate of the scene with an object resting in the bin.
+- ``refused_fraction``: fraction of uniformly random pushes (random point and motion, ``train``
+  objects) the simulator refuses; ``refusals_predicted``: the fraction of those refusals that
+  ``sim.primitive`` predicts from the observation (workspace gate + ``start_clear``);
+  ``false_refusals``: pushes it predicts refused that the simulator runs (should be 0).
+- ``feasible_points_ms``: ``sim.primitive.feasible_points`` for one training decision (8 envs x
+  128 object points, 256-point clouds), the location policy's per-step cost.
 """
 
 from __future__ import annotations
@@ -149,6 +155,41 @@ def bench_physics(seconds: float, seed: int) -> dict:
     return {"physics_steps_per_s": rate, "physics_timestep_s": float(m.opt.timestep)}
 
 
+def bench_feasibility(episodes: int, seed: int) -> dict:
+    from sim.env import BinEnv
+    from sim.primitive import feasible_points, plans_inside, primitive_waypoints, start_clear
+
+    env = BinEnv("train", "planar")
+    rng = np.random.default_rng(seed)
+    pushes = refused = caught = false_refusals = 0
+    for ep in range(episodes):
+        obs, _ = env.reset(seed=seed + ep)
+        for _ in range(5):
+            i, motion = int(rng.integers(env.n_obj)), rng.uniform(-1, 1, 3).astype(np.float32)
+            w = primitive_waypoints(obs["points"][i], obs["normals"][i], motion)
+            predicted_ok = bool(plans_inside(w) & start_clear(w[None, None, 0], obs["points"][None])[0, 0])
+            obs, _, term, trunc, info = env.step((i, motion))
+            pushes += 1
+            refused += info["rejected"]
+            caught += info["rejected"] and not predicted_ok
+            false_refusals += (not info["rejected"]) and not predicted_ok
+            if term or trunc:
+                break
+    b = 8
+    pts = np.repeat(obs["points"][None], b, 0)
+    nrm, mot = np.repeat(obs["normals"][None], b, 0), rng.uniform(-1, 1, (b, env.n_obj, 3))
+    t = time.perf_counter()
+    for _ in range(50):
+        feasible_points(pts[:, : env.n_obj], nrm, mot, pts)
+    return {
+        "random_pushes": pushes,
+        "refused_fraction": refused / pushes,
+        "refusals_predicted": caught / max(refused, 1),
+        "false_refusals": false_refusals,
+        "feasible_points_ms": (time.perf_counter() - t) / 50 * 1e3,
+    }
+
+
 def write_json_atomic(path: Path, obj: dict) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2) + "\n")
 
@@ -164,6 +205,10 @@ def print_table(results: dict) -> None:
         ("primitive_ms", "one primitive: push + settle (ms)", "{:.2f}"),
         ("primitive_physics_steps", "physics steps per primitive", "{:.0f}"),
         ("physics_steps_per_s", "raw mj_step/s (object resting)", "{:.0f}"),
+        ("refused_fraction", "random pushes the simulator refuses", "{:.1%}"),
+        ("refusals_predicted", "of those, predicted from the observation", "{:.1%}"),
+        ("false_refusals", "predicted refused but run by the simulator", "{:d}"),
+        ("feasible_points_ms", "feasible_points, 8 envs x 128 points (ms)", "{:.2f}"),
     ]
     try:
         from rich.console import Console
@@ -196,6 +241,7 @@ def main(argv: list[str] | None = None) -> dict:
     results.update(bench_primitives(n=30, seed=args.seed))
     results.update(bench_physics(seconds=min(3.0, args.seconds), seed=args.seed))
     results.update(bench_render(n_objects=4, per_object=8, seed=args.seed))
+    results.update(bench_feasibility(episodes=80, seed=args.seed))
     results["meta"] = {
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "mujoco": mujoco.__version__,

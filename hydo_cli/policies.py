@@ -24,7 +24,8 @@ class LoadedPolicy:
 def load_policy(target: str, seed: int = 0, feasible_only: bool = True) -> LoadedPolicy:
     """A baseline name, a run directory (its latest checkpoint) or a checkpoint file.
 
-    ``feasible_only``: learned policies choose among points whose primitive passes the workspace gate."""
+    ``feasible_only``: learned policies choose among points whose push can run
+    (``sim.primitive.feasible_points``)."""
     if target in BASELINES:
         return LoadedPolicy(baseline_policy(target, seed), None, None, target == "random", target, target)
     path = Path(target)

@@ -52,7 +52,7 @@ def stack_obs(observations: list[dict[str, np.ndarray]]) -> tuple[torch.Tensor, 
 
 def agent_policy(agent: HybridAgent, mode: str, generator: torch.Generator, feasible_only: bool = True):
     """Wrap ``agent.act`` as a batched ``hydo_cli.rollout`` policy (``feasible_only``: choose among
-    points whose primitive passes the workspace gate, see ``HybridAgent.act``)."""
+    points whose push can run, see ``HybridAgent.act``)."""
 
     def policy(observations):
         points, features = stack_obs(observations)

@@ -441,9 +441,10 @@ class HybridAgent:
 
         Q at each point is scored on the motion proposed at that point (TD3: Q1, as HACMan; SAC: the
         twin minimum). With the object points' unit ``normals (B, N_obj, 3)``, the location is chosen
-        among the points whose push can run: inside the ``workspace``, hand clear of the observed cloud
-        and the bin at the start (``sim.primitive.feasible_points``; all points if none can). ``info``: ``q (B, N_obj)``, ``location_probs (B, N_obj)``, ``motions (B, N_obj,
-        3)``, ``motion_log_prob (B,)`` (log-prob estimate of the chosen point's motion).
+        among the points whose push can run (``sim.primitive.feasible_points`` with ``workspace``;
+        all points if none can). ``info``: ``q (B, N_obj)`` (unmasked), ``location_probs (B, N_obj)``,
+        ``motions (B, N_obj, 3)``, ``motion_log_prob (B,)`` (log-prob estimate of the chosen point's
+        motion).
         """
         if mode not in MODES:
             raise ValueError(f"`mode` must be one of {list(MODES)}. Got {mode}.")
@@ -467,11 +468,8 @@ class HybridAgent:
         else:
             index = torch.multinomial(probs, 1, generator=generator).squeeze(-1)  # (B,)
             if not self.is_sac and cfg.epsilon_greedy > 0:
-                if normals is None:
-                    uniform = torch.randint(0, n, (b,), generator=generator)
-                else:  # uniform over the feasible points
-                    allowed = torch.isfinite(q_select).to(q.dtype)
-                    uniform = torch.multinomial(allowed, 1, generator=generator).squeeze(-1)
+                allowed = torch.isfinite(q_select).to(q.dtype)  # uniform over the feasible points
+                uniform = torch.multinomial(allowed, 1, generator=generator).squeeze(-1)
                 explore_uniform = torch.rand(b, generator=generator) < cfg.epsilon_greedy
                 index = torch.where(explore_uniform, uniform, index)
         rows = torch.arange(b)

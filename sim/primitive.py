@@ -137,31 +137,24 @@ _BIN_HIGH = (BIN_INNER_SIZE_M[0] / 2, BIN_INNER_SIZE_M[1] / 2, BIN_FLOOR_Z + BIN
 START_TOLERANCE_M = 0.003  # overlap tolerated at the start pose (the simulator's START_PENETRATION_M)
 
 
-def start_clear(
-    start: np.ndarray,
-    cloud: np.ndarray,
-    bin_low: np.ndarray = (-BIN_INNER_SIZE_M[0] / 2, -BIN_INNER_SIZE_M[1] / 2, BIN_FLOOR_Z),
-    bin_high: np.ndarray = (
-        BIN_INNER_SIZE_M[0] / 2,
-        BIN_INNER_SIZE_M[1] / 2,
-        BIN_FLOOR_Z + BIN_INNER_SIZE_M[2],
-    ),
-) -> np.ndarray:
-    """Boolean (B, N): whether the hand placed at each ``start`` (B, N, 3) fingertip position stays
-    clear of the observed ``cloud`` (B, M, 3) and of the bin's walls (inner box ``bin_low`` ..
-    ``bin_high``, the rim at ``bin_high[2]``).
+def hand_hits_cloud(fingertip: np.ndarray, cloud: np.ndarray) -> np.ndarray:
+    """Boolean (B, N): whether the hand with its fingertip at ``fingertip`` (B, N, 3) encloses any point
+    of the observed ``cloud`` (B, M, 3) deeper than the start tolerance.
 
-    A point-cloud approximation of the simulator's start-pose collision test (``sim.scene``), which
-    stays the authority: it catches the common refusals (the palm against a wall, the fingers inside
-    the object) before they cost a primitive."""
-    start = np.asarray(start, dtype=np.float64)[..., None, :]  # (B, N, 1, 3)
-    cloud = np.asarray(cloud, dtype=np.float64)[:, None, :, :]  # (B, 1, M, 3)
-    clear = within_walls(start[..., 0, :], bin_low, bin_high)
+    Per-axis float32 comparisons of (B, N, M) arrays: ~20x faster than one (B, N, M, 3) float64
+    difference reduced over its last axis (1.6 vs 35 ms for 8 x 128 x 256), which matters because
+    this runs at every decision."""
+    f = np.asarray(fingertip, dtype=np.float32)
+    cloud = np.asarray(cloud, dtype=np.float32)
+    hit = np.zeros(f.shape[:2], dtype=bool)
     for centre, half in HAND_BOXES:
-        c, h = start[..., 0, :] + centre, np.asarray(half)  # (B, N, 3)
-        hit = (np.abs(cloud - c[..., None, :]) < h - START_TOLERANCE_M).all(-1).any(-1)  # (B, N)
-        clear &= ~hit
-    return clear
+        c = f + np.asarray(centre, dtype=np.float32)  # (B, N, 3) box centres
+        limit = np.asarray(half, dtype=np.float32) - START_TOLERANCE_M
+        inside = np.abs(cloud[:, None, :, 2] - c[:, :, None, 2]) < limit[2]  # (B, N, M)
+        for axis in (0, 1):
+            inside &= np.abs(cloud[:, None, :, axis] - c[:, :, None, axis]) < limit[axis]
+        hit |= inside.any(-1)
+    return hit
 
 
 def within_walls(
@@ -170,7 +163,7 @@ def within_walls(
     bin_high: np.ndarray = _BIN_HIGH,
 ) -> np.ndarray:
     """Boolean (...): whether the hand with its fingertip at ``fingertip`` (..., 3) stays off the bin's
-    walls: every hand box below the rim lies inside the inner box (in x and y)."""
+    walls: every hand box below the rim (``bin_high[2]``) lies inside the inner box in x and y."""
     f = np.asarray(fingertip, dtype=np.float64)
     lo_bin, hi_bin = np.asarray(bin_low, float), np.asarray(bin_high, float)
     ok = np.ones(f.shape[:-1], dtype=bool)
@@ -185,6 +178,15 @@ def within_walls(
     return ok
 
 
+def start_clear(
+    start: np.ndarray, cloud: np.ndarray, bin_low: np.ndarray = _BIN_LOW, bin_high: np.ndarray = _BIN_HIGH
+) -> np.ndarray:
+    """Boolean (B, N): a point-cloud approximation of the simulator's start-pose collision test
+    (``sim.scene``, which stays the authority): the hand at each ``start`` (B, N, 3) neither encloses
+    points of ``cloud`` (B, M, 3) nor overlaps the bin's walls."""
+    return within_walls(start, bin_low, bin_high) & ~hand_hits_cloud(start, cloud)
+
+
 def feasible_points(
     points: np.ndarray,
     normals: np.ndarray,
@@ -196,17 +198,17 @@ def feasible_points(
     """Boolean (B, N_obj): whether the primitive at each object point can run.
 
     ``points``, ``normals``, ``motions`` (B, N_obj, 3): contact candidates and the motion the policy
-    proposes at each. A plan must pass the workspace gate and, with the observed ``cloud`` (B, M, 3),
-    start with the hand clear of it, and keep the hand off the bin's walls through the push (``bin_box`` = (low, high), default the simulated
-    bin). The location policy uses it to choose among points whose push can run: a refused push
-    wastes a primitive and, for a deterministic policy, repeats until the episode times out."""
+    proposes at each. A plan must pass the workspace gate, keep the hand off the bin's walls from the
+    start through the last push (``bin_box`` = (low, high), default the simulated bin) and, given
+    the observed ``cloud`` (B, M, 3), start with the hand clear of it. The location policy chooses
+    among these points: a refused push wastes a primitive and, for a deterministic policy, repeats
+    until the episode times out; a push that presses the 20 cm palm on the rim is tolerated by the
+    force-limited training hand but stops a real arm (contact-force stop or reflex)."""
     waypoints = primitive_waypoints(points, normals, motions, workspace.floor_z)
     ok = plans_inside(waypoints, workspace)
+    ok &= within_walls(waypoints[..., : N_WAYPOINTS - 1, :], *(bin_box or ())).all(-1)
     if cloud is not None:
-        ok &= start_clear(waypoints[..., 0, :], cloud, *(bin_box or ()))
-        # the whole push, not only its start, keeps the 20 cm palm off the walls: the training hand is
-        # force-limited and tolerates pressing on the rim, a real arm stops (contact-force stop/reflex)
-        ok &= within_walls(waypoints[..., : N_WAYPOINTS - 1, :], *(bin_box or ())).all(-1)
+        ok &= ~hand_hits_cloud(waypoints[..., 0, :], cloud)
     return ok
 
 

@@ -91,7 +91,7 @@ def test_agent_only_chooses_feasible_points(algo):
     env = BinEnv("train", "planar", n_obj=32, n_bg=32)
     agent = HybridAgent(AgentConfig(algo=algo, **{**SMALL, "n_obj": 32, "n_bg": 32}))
     g = torch.Generator().manual_seed(0)
-    chosen_infeasible = 0
+    chosen_infeasible = argmax_infeasible = 0
     for ep in range(12):
         obs, _ = env.reset(seed=ep)
         pts, feats = torch.from_numpy(obs["points"][None]), torch.from_numpy(obs["features"][None])
@@ -103,7 +103,9 @@ def test_agent_only_chooses_feasible_points(algo):
             )
             if feasible.any():
                 chosen_infeasible += not feasible[0, int(index[0])]
+                argmax_infeasible += not feasible[0, int(info["q"][0].argmax())]
     assert chosen_infeasible == 0
+    assert argmax_infeasible > 0  # the plain argmax of Q would have chosen infeasible points: the mask acted
 
 
 def test_palm_must_stay_off_the_walls_through_the_push():

@@ -10,6 +10,7 @@ then each update is preceded by one batched exploration step. Solved: eval-mode 
 import numpy as np
 import pytest
 import torch
+from learner_util import SMALL
 
 from models.algos import ALGOS, AgentConfig, HybridAgent
 from models.replay import ReplayBuffer
@@ -19,7 +20,7 @@ TARGET_INDEX = 2
 TARGET_MOTION = np.array([0.4, -0.3, 0.2], dtype=np.float32)  # ‖·‖ = 0.54: the initial policy (≈ 0) misses
 RADIUS = 0.5
 PREFILL = 8192  # random (index, motion) pairs: ~130 rewarded
-UPDATES = 500
+UPDATES = 700  # hacman-cm needs > 500 on some random streams; 700 solves every algo on seeds 0-2
 BATCH = 256
 EXPLORE_ENVS = 8
 
@@ -54,15 +55,8 @@ def test_bandit_is_solved(algo):
     points, features = scene()
     cfg = AgentConfig(
         algo=algo,
-        n_obj=N_OBJ,
-        n_bg=N_BG,
+        **{**SMALL, "n_obj": N_OBJ, "n_bg": N_BG},
         seed=seed,
-        feature_dim=32,
-        encoder_hidden=32,
-        encoder_global=32,
-        actor_hidden=32,
-        critic_hidden=32,
-        actor_points=8,
         lr_critic=3e-3,
         lr_actor=3e-4,  # the actor moves slower than the critic fits the sparse bump
         lr_alpha=1e-2,
