@@ -539,7 +539,8 @@ def install(monkeypatch_or_none, name: str, module) -> None:
 class FrankyScript:
     """What the fake FR3 does; moves are numbered from 1. ``faults``: move → ``"reflex"``
     (``ControlException``), ``"force"`` (the force reaction fires and ``move`` returns normally, as
-    franky's reactions do), ``"comm_lost"`` (``NetworkException``). ``absent``: connecting fails."""
+    franky's reactions do), ``"deadline"`` (the time reaction fires halfway, likewise),
+    ``"comm_lost"`` (``NetworkException``). ``absent``: connecting fails."""
 
     faults: dict[int, str] = field(default_factory=dict)
     absent: bool = False
@@ -586,6 +587,7 @@ def fake_franky(cell, script: FrankyScript | None = None):
             return types.SimpleNamespace(expr=f"{self.expr} > {v}", threshold=v)
 
     Measure.FORCE_X, Measure.FORCE_Y, Measure.FORCE_Z = Measure("F_x"), Measure("F_y"), Measure("F_z")
+    Measure.REL_TIME = Measure("t_rel")
     fr.Measure = Measure
 
     class Affine:
@@ -593,6 +595,10 @@ def fake_franky(cell, script: FrankyScript | None = None):
             self.matrix = np.eye(4) if matrix is None else np.asarray(matrix, dtype=np.float64)
 
     class CartesianStopMotion:
+        def __init__(self, relative_dynamics_factor=1.0):
+            pass
+
+    class JointStopMotion:
         def __init__(self, relative_dynamics_factor=1.0):
             pass
 
@@ -617,9 +623,12 @@ def fake_franky(cell, script: FrankyScript | None = None):
 
     class JointMotion:
         def __init__(self, target, reference_type="Absolute", relative_dynamics_factor=1.0, **kw):
-            self.target, self.relative_dynamics_factor = target, relative_dynamics_factor
+            self.target, self.relative_dynamics_factor, self.reactions = target, relative_dynamics_factor, []
 
-    for obj in (Affine, CartesianStopMotion, Reaction, CartesianMotion, JointState, JointMotion):
+        def add_reaction(self, reaction):
+            self.reactions.append(reaction)
+
+    for obj in (Affine, CartesianStopMotion, JointStopMotion, Reaction, CartesianMotion, JointState, JointMotion):
         setattr(fr, obj.__name__, obj)
 
     class Robot:
@@ -691,11 +700,13 @@ def fake_franky(cell, script: FrankyScript | None = None):
                 self.ee = self.home_ee.copy()
                 return
             target = motion.target.matrix
-            if fault == "force":  # the reaction fires halfway: franky returns normally
+            if fault in ("force", "deadline"):  # the reaction fires halfway: franky returns normally
                 self.ee[:3, 3] = (self.ee[:3, 3] + target[:3, 3]) / 2
+                measure = "F_x" if fault == "force" else "t_rel"
                 for r in motion.reactions:
-                    for cb in r.callbacks:
-                        cb(None, 0.1, 0.1)
+                    if measure in r.condition.expr:
+                        for cb in r.callbacks:
+                            cb(None, 0.1, 0.1)
                 return
             self.ee = target.copy()
             self.q = np.array(cell.home_joints, dtype=np.float64) + 0.3

@@ -10,7 +10,9 @@ On connect, franky's ritual with every limit from the cell: ``recover_from_error
 ``relative_dynamics_factor``, explicit collision thresholds (``set_collision_behavior``), and the
 realtime kernel enforced unless ``--allow-no-realtime`` (then ``RealtimeConfig.Ignore``, logged).
 Each Cartesian move carries a reaction ``|F_ext|² > F_stop²`` → ``CartesianStopMotion``; its speed is
-the command's, through the motion's relative dynamics factor.
+the command's, through the motion's relative dynamics factor. Every move, the joint move home
+included, also carries the cell's deadline ``REL_TIME > motion_timeout_s`` → stop, reported as
+``short_of_goal``.
 """
 
 from __future__ import annotations
@@ -164,12 +166,14 @@ class FR3Executor(Executor):
     def _move(self, command: Command) -> MoveResult:
         fr = self._fr
         lim = self.cell.limits
-        fired = threading.Event()
+        fired, timed_out = threading.Event(), threading.Event()
+        M = fr.Measure
         if command.kind == "home":
             motion = fr.JointMotion(
                 fr.JointState(np.asarray(self.cell.home_joints, dtype=np.float64)),
                 relative_dynamics_factor=JOINT_MOVE_FACTOR,
             )
+            stop = fr.JointStopMotion()
         else:
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R_DOWN, command.target
@@ -178,11 +182,17 @@ class FR3Executor(Executor):
                 fr.ReferenceType.Absolute,
                 relative_dynamics_factor=self._factor(command.speed),
             )
-            M = fr.Measure
+            stop = fr.CartesianStopMotion()
             force2 = M.FORCE_X * M.FORCE_X + M.FORCE_Y * M.FORCE_Y + M.FORCE_Z * M.FORCE_Z
             reaction = fr.Reaction(force2 > lim.force_stop**2, fr.CartesianStopMotion())
             reaction.register_callback(lambda *_: fired.set())
             motion.add_reaction(reaction)
+        # The cell's deadline on every move (REL_TIME is seconds since this motion started): a move
+        # that cannot finish (a stall against the bin, a target the controller creeps towards) stops
+        # where it is instead of blocking the session.
+        deadline = fr.Reaction(M.REL_TIME > lim.motion_timeout, stop)
+        deadline.register_callback(lambda *_: timed_out.set())
+        motion.add_reaction(deadline)
         try:
             self.robot.move(motion)
         except Exception as e:  # ControlException (reflex, limits), NetworkException, CommandException
@@ -190,6 +200,10 @@ class FR3Executor(Executor):
                 return self._classify(e, command.label)
             raise
         here = self.fingertip()
+        if timed_out.is_set():
+            return MoveResult(
+                Outcome.short_of_goal, here, 0.0, (), f"{command.label}: deadline of {lim.motion_timeout:g} s reached"
+            )
         if fired.is_set():
             return MoveResult(
                 Outcome.reaction_fired, here, lim.force_stop, (), f"force reaction > {lim.force_stop:g} N"

@@ -5,6 +5,7 @@ franky-sim on 127.0.0.1, and real pyrealsense2 with no camera attached."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import socket
 import subprocess
@@ -63,6 +64,15 @@ def test_fr3_force_reaction_returning_normally_is_reported(monkeypatch, cell, pl
     fr, result = run(monkeypatch, cell, plan, FrankyScript(faults={5: "force"}))
     assert result.outcome is Outcome.reaction_fired and result.failed.label == "w3 push 1"
     assert len(fr.robot.moves) == 5  # nothing after the stopped push
+
+
+def test_fr3_every_move_carries_the_cells_deadline(monkeypatch, cell, plan):
+    fr, result = run(monkeypatch, cell, plan, FrankyScript(faults={2: "deadline"}))
+    assert result.outcome is Outcome.short_of_goal and "deadline" in result.message
+    assert len(fr.robot.moves) == 2  # nothing after the move that ran out of time
+    for motion in fr.robot.moves:  # the joint move home too
+        deadlines = [r for r in motion.reactions if "t_rel" in r.condition.expr]
+        assert [r.condition.threshold for r in deadlines] == [cell.limits.motion_timeout]
 
 
 @pytest.mark.parametrize("fault, outcome", [("reflex", Outcome.reflex), ("comm_lost", Outcome.comm_lost)])
@@ -176,6 +186,16 @@ def test_fr3_against_franky_sim_on_loopback(cell, tmp_path):
             assert robot.robot_mode() is RobotMode.idle and robot.current_errors() == ()
             assert robot.send(down).outcome is Outcome.ok  # the same move again, after recovery
             assert robot.fingertip()[2] == pytest.approx(start[2] - 0.10, abs=2e-3)  # base frame: down
+
+            # the cell's deadline, in seconds: a 10 cm move at 5 cm/s under a 0.5 s deadline stops
+            # part-way (franky's REL_TIME is seconds; were it ms, the move would not start)
+            robot.cell = dataclasses.replace(c, limits=dataclasses.replace(c.limits, motion_timeout=0.5))
+            up = Command(3, "transit", tuple(start), 0.05, "up 10 cm")
+            late = robot.send(up)
+            assert late.outcome is Outcome.short_of_goal and "deadline of 0.5 s" in late.message
+            assert start[2] - 0.10 + 5e-3 < robot.fingertip()[2] < start[2] - 0.03
+            robot.cell = c
+            robot.recover()
 
             back = Command(2, "transit", tuple(start), 0.05, "back up")
             killer = _when_moving(robot, server.terminate)
