@@ -268,6 +268,30 @@ class BinEnv(gym.Env):
             info["behaviour"] = self.task.behaviour(self._trajectory)
         return self._observe(), float(reward), terminated, truncated, info
 
+    def get_sim_state(self) -> dict:
+        """A snapshot of everything ``step`` depends on (physics, last observation, goal, primitive
+        count): with ``set_sim_state`` a planner can try pushes and go back (``bench/lookahead.py``)."""
+        if self._obs is None:
+            raise RuntimeError("call reset() before get_sim_state()")
+        return {
+            "physics": self.scene.get_state(),
+            "obs": {k: v.copy() for k, v in self._obs.items()},
+            "steps": self._steps,
+            "T_goal": self.T_goal.copy(),
+            "goal_pose": self.goal_pose,
+            "trajectory": list(getattr(self, "_trajectory", [])),
+        }
+
+    def set_sim_state(self, snapshot: dict) -> None:
+        """Return to a ``get_sim_state`` snapshot taken in this episode (same scene)."""
+        self.scene.set_state(snapshot["physics"])
+        self._obs = {k: v.copy() for k, v in snapshot["obs"].items()}
+        self._steps, self.goal_pose = snapshot["steps"], snapshot["goal_pose"]
+        self.T_goal = snapshot["T_goal"].copy()
+        self.scene.set_goal_ghost(*self.goal_pose)
+        if self.task is not None:
+            self._trajectory = list(snapshot["trajectory"])
+
     def render(self):
         if self.render_mode != "rgb_array":
             return None

@@ -28,6 +28,7 @@ PARK_POS = np.array([0.0, 0.0, 1.5])  # hand parked far above the bin, outside e
 
 OBJECT_DENSITY = 400.0  # kg/m^3, light wood/plastic: a 10 cm object weighs 0.1-0.4 kg
 OBJECT_FRICTION = (0.5, 0.005, 0.0001)  # sliding, torsional, rolling
+_FULL_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 APPROACH_SPEED = 0.2  # m/s, fingertip speed from pre-contact to contact
 PUSH_SPEED = 0.15  # m/s, fingertip speed while pushing
 TRACK_STEPS = 10  # physics steps (50 ms) to let the actuators converge after each push target
@@ -208,15 +209,15 @@ class BinScene:
         return bool(np.all(np.abs(pos[:2]) < half) and -0.02 < pos[2] < 0.35)
 
     def get_state(self) -> np.ndarray:
-        return np.concatenate([self.data.qpos, self.data.qvel, self.data.ctrl, [self.data.time]])
+        """MuJoCo's full integration state (1-D float64): positions, velocities, controls, mocap
+        poses, time and the solver's warm start, so that ``set_state`` replays a push exactly."""
+        state = np.empty(mujoco.mj_stateSize(self.model, _FULL_STATE))
+        mujoco.mj_getState(self.model, self.data, state, _FULL_STATE)
+        return state
 
     def set_state(self, state: np.ndarray) -> None:
-        m = self.model
-        self.data.qpos[:] = state[: m.nq]
-        self.data.qvel[:] = state[m.nq : m.nq + m.nv]
-        self.data.ctrl[:] = state[m.nq + m.nv : m.nq + m.nv + m.nu]
-        self.data.time = state[-1]
-        mujoco.mj_forward(m, self.data)
+        mujoco.mj_setState(self.model, self.data, np.asarray(state, dtype=np.float64), _FULL_STATE)
+        mujoco.mj_forward(self.model, self.data)
 
     # --- physics ---------------------------------------------------------------------------------
     def settle(self, max_s: float = SETTLE_MAX_S, chunk: int = 5) -> int:

@@ -7,6 +7,7 @@ from gymnasium.utils.env_checker import check_env
 
 import sim  # noqa: F401
 from sim.contract import FEATURE_DIM, SUCCESS_THRESHOLD_M, validate_observation
+from sim.baselines import heuristic_action
 from sim.env import BinEnv
 
 
@@ -89,6 +90,26 @@ def test_rejected_primitive_leaves_scene_unchanged():
     _, _, _, _, info = env.step((i, np.array([1.0, 0.0, 0.0])))
     assert info["rejected"] and "workspace" in info["reject_reason"]
     np.testing.assert_array_equal(env.scene.get_state(), before)
+
+
+def test_sim_state_snapshot_replays_a_push_exactly():
+    """A planner's try-and-go-back (bench/lookahead.py): the same push from a restored snapshot ends
+    in the same pose, bit for bit, and the episode's step count is restored with it."""
+    env = BinEnv(objects="train", goals="planar")
+    obs, _ = env.reset(seed=3)
+    index, motion = heuristic_action(obs, np.random.default_rng(0))
+    snapshot = env.get_sim_state()
+    start = np.concatenate(env.scene.object_pose())
+    _, _, _, _, first = env.step((index, motion))
+    pose = np.concatenate(env.scene.object_pose())
+    assert first["physics_steps"] > 0 and not first["rejected"]
+    assert np.linalg.norm(pose[:3] - start[:3]) > 0.005  # the push moved the object
+    env.set_sim_state(snapshot)
+    assert env._steps == 0
+    np.testing.assert_array_equal(env.scene.get_state(), snapshot["physics"])
+    _, _, _, _, again = env.step((index, motion))
+    np.testing.assert_array_equal(np.concatenate(env.scene.object_pose()), pose)
+    assert again["distance"] == first["distance"]
 
 
 def test_truncation_after_ten_primitives():

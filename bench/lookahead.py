@@ -1,0 +1,132 @@
+"""Headroom of the task: the success a one-step lookahead search over pushes reaches.
+
+At every step the searcher tries ``C`` candidate pushes in the simulator itself (four from the
+``heuristic`` policy, the rest a uniformly random object point and motion), goes back to the saved
+state after each (``BinEnv.get_sim_state`` / ``set_sim_state``, MuJoCo's full integration state, so a
+replayed push ends exactly where it did when tried), then executes the one that ended closest to the
+goal. It sees the simulator, so it is not a policy a robot could run; it tells how much of the gap
+between a learned policy and 100 % the push primitive and the physics leave open. A learned policy
+near the searcher's figure is limited by the task; far below it, by the learner.
+
+Usage::
+
+    python bench/lookahead.py --candidates 8,48 --episodes 40 --json runs/bench-lookahead.json
+
+JSON: ``{"C=<n>": {"success_rate", "mean_steps_to_success", "mean_final_distance_m",
+"max_replay_error_m", "wall_s", "episodes"}, "meta": {...}}``; ``max_replay_error_m`` is the largest
+difference between a push's distance when tried and when executed (0 when replay is exact).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+os.environ["OPENBLAS_NUM_THREADS"] = "1"
+os.environ["OMP_NUM_THREADS"] = "1"
+ROOT = Path(__file__).resolve().parent.parent
+sys.path[:] = [str(ROOT)] + [p for p in sys.path if Path(p or ".").resolve() != ROOT / "bench"]
+
+import gymnasium  # noqa: E402
+import numpy as np  # noqa: E402
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+
+import sim  # noqa: E402, F401
+from sim.atomic import atomic_write_text  # noqa: E402
+from sim.baselines import heuristic_action  # noqa: E402
+
+N_HEURISTIC = 4  # heuristic candidates per step (it samples among its contact points)
+
+
+def search_episode(env, n_candidates: int, seed: int, rng: np.random.Generator) -> dict:
+    """One episode of greedy one-step search; returns its outcome and the largest replay error."""
+    obs, info = env.reset(seed=seed)
+    replay_error, steps = 0.0, 0
+    while True:
+        snapshot = env.get_sim_state()
+        n_obj = len(obs["normals"])
+        candidates = [heuristic_action(obs, rng) for _ in range(N_HEURISTIC)]
+        candidates += [
+            (int(rng.integers(n_obj)), rng.uniform(-1.0, 1.0, 3)) for _ in range(n_candidates - N_HEURISTIC)
+        ]
+        best, best_d = candidates[0], np.inf
+        for action in candidates:
+            _, _, _, _, tried = env.step(action)
+            bad = tried["rejected"] or tried["failure"] == "object_left_bin"
+            d = np.inf if bad else tried["distance"]
+            if d < best_d:
+                best, best_d = action, d
+            env.set_sim_state(snapshot)
+        obs, _, terminated, truncated, info = env.step(best)
+        steps += 1
+        if np.isfinite(best_d):
+            replay_error = max(replay_error, abs(info["distance"] - best_d))
+        if terminated or truncated:
+            return {
+                "object": info["object"],
+                "success": bool(info["success"]),
+                "steps": steps,
+                "final_distance": float(info["distance"]),
+                "replay_error": replay_error,
+            }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--candidates", default="8,48", help="comma-separated candidate counts C (≥ 4)")
+    ap.add_argument("--episodes", type=int, default=40)
+    ap.add_argument("--objects", default="train")
+    ap.add_argument("--goals", default="planar", choices=["planar", "6d"])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", type=Path, help="write results to this JSON file")
+    args = ap.parse_args()
+    counts = [int(c) for c in args.candidates.split(",")]
+    if min(counts) < N_HEURISTIC:
+        ap.error(f"--candidates must each be ≥ {N_HEURISTIC}")
+
+    env = gymnasium.make("hydo/Bin-v0", objects=args.objects, goals=args.goals).unwrapped
+    results = {}
+    for c in counts:
+        rng = np.random.default_rng(args.seed)
+        t0 = time.perf_counter()
+        eps = [search_episode(env, c, args.seed * 100_000 + i, rng) for i in range(args.episodes)]
+        ok = [e for e in eps if e["success"]]
+        results[f"C={c}"] = {
+            "candidates": c,
+            "episodes": len(eps),
+            "success_rate": len(ok) / len(eps),
+            "mean_steps_to_success": float(np.mean([e["steps"] for e in ok])) if ok else None,
+            "mean_final_distance_m": float(np.mean([e["final_distance"] for e in eps])),
+            "max_replay_error_m": float(max(e["replay_error"] for e in eps)),
+            "wall_s": time.perf_counter() - t0,
+        }
+
+    table = Table(title=f"one-step lookahead search ({args.objects} objects, {args.goals} goals)")
+    for col in ("candidates", "episodes", "success", "steps to success", "final dist (cm)", "replay err (mm)", "wall s"):
+        table.add_column(col, justify="right")
+    for r in results.values():
+        steps = "-" if r["mean_steps_to_success"] is None else f"{r['mean_steps_to_success']:.1f}"
+        table.add_row(
+            str(r["candidates"]),
+            str(r["episodes"]),
+            f"{r['success_rate']:.0%}",
+            steps,
+            f"{r['mean_final_distance_m'] * 100:.1f}",
+            f"{r['max_replay_error_m'] * 1000:.2f}",
+            f"{r['wall_s']:.0f}",
+        )
+    Console().print(table)
+    if args.json:
+        meta = {"command": "python " + " ".join(sys.argv), "python": platform.python_version(), **vars(args)}
+        meta["json"] = str(args.json)
+        atomic_write_text(args.json, json.dumps({**results, "meta": meta}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
