@@ -108,7 +108,15 @@ def main() -> None:
         }
 
     table = Table(title=f"one-step lookahead search ({args.objects} objects, {args.goals} goals)")
-    for col in ("candidates", "episodes", "success", "steps to success", "final dist (cm)", "replay err (mm)", "wall s"):
+    for col in (
+        "candidates",
+        "episodes",
+        "success",
+        "steps to success",
+        "final dist (cm)",
+        "replay err (mm)",
+        "wall s",
+    ):
         table.add_column(col, justify="right")
     for r in results.values():
         steps = "-" if r["mean_steps_to_success"] is None else f"{r['mean_steps_to_success']:.1f}"

@@ -628,7 +628,15 @@ def fake_franky(cell, script: FrankyScript | None = None):
         def add_reaction(self, reaction):
             self.reactions.append(reaction)
 
-    for obj in (Affine, CartesianStopMotion, JointStopMotion, Reaction, CartesianMotion, JointState, JointMotion):
+    for obj in (
+        Affine,
+        CartesianStopMotion,
+        JointStopMotion,
+        Reaction,
+        CartesianMotion,
+        JointState,
+        JointMotion,
+    ):
         setattr(fr, obj.__name__, obj)
 
     class Robot:

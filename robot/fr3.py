@@ -202,7 +202,11 @@ class FR3Executor(Executor):
         here = self.fingertip()
         if timed_out.is_set():
             return MoveResult(
-                Outcome.short_of_goal, here, 0.0, (), f"{command.label}: deadline of {lim.motion_timeout:g} s reached"
+                Outcome.short_of_goal,
+                here,
+                0.0,
+                (),
+                f"{command.label}: deadline of {lim.motion_timeout:g} s reached",
             )
         if fired.is_set():
             return MoveResult(

@@ -6,8 +6,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import sim  # noqa: F401
-from sim.contract import FEATURE_DIM, SUCCESS_THRESHOLD_M, validate_observation
 from sim.baselines import heuristic_action
+from sim.contract import FEATURE_DIM, SUCCESS_THRESHOLD_M, validate_observation
 from sim.env import BinEnv
 
 
