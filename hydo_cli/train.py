@@ -103,6 +103,9 @@ class TrainConfig:
     """Env steps between checkpoints."""
     log_every: int = 500
     """Env steps between metric lines."""
+    augment: str = "none"
+    """Replay augmentation: none, or yaw90 (each sampled transition's scene turned about z by a random
+    multiple of 90°; physics is invariant under rotations about gravity; see models.replay)."""
     threads: int = 2
     """torch intra-op threads: 2 on an idle 2-core machine, 1 when two runs share it."""
     agent: dict = dataclasses.field(default_factory=dict)
@@ -128,6 +131,10 @@ class TrainConfig:
         ):
             if getattr(self, name) < 1:
                 raise HydoError(f"`{name}` must be at least 1. Got {getattr(self, name)}.")
+        from models.replay import AUGMENTATIONS
+
+        if self.augment not in AUGMENTATIONS:
+            raise HydoError(f"`augment` must be one of {list(AUGMENTATIONS)}. Got {self.augment!r}.")
         if self.updates_per_step < 0:
             raise HydoError(f"`updates_per_step` must be >= 0. Got {self.updates_per_step}.")
         if self.task is not None:  # --task (eval issue): its scene replaces objects, goals and clutter

@@ -247,7 +247,7 @@ class Trainer:
                     if self.env_steps >= cfg.learning_starts and len(self.buffer) >= cfg.batch_size:
                         update_debt += cfg.updates_per_step * len(self.envs)
                         while update_debt >= 1.0:
-                            last_metrics = self.agent.update(self.buffer.sample(cfg.batch_size))
+                            last_metrics = self.agent.update(self.buffer.sample(cfg.batch_size, cfg.augment))
                             self.updates += 1
                             update_debt -= 1.0
                     # 4. log, evaluate, checkpoint

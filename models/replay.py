@@ -41,6 +41,41 @@ class ReplayBatch(NamedTuple):
     truncated: torch.Tensor  # (B,) 1.0 where it hit the primitive cap (still bootstraps)
 
 
+AUGMENTATIONS = ("none", "yaw90")
+
+
+def rotate_yaw90(batch: ReplayBatch, quarter_turns: torch.Tensor) -> ReplayBatch:
+    """The same transitions in a world turned about z by ``quarter_turns (B,)`` × 90°.
+
+    Physics is invariant under rotations about gravity, so a turned transition (points, goal flows
+    and motion turned alike, reward and point order unchanged) is one the simulator would produce in a
+    turned bin. Multiples of 90° only: they map the motion box [-1, 1]³ onto itself, where other
+    angles would push motions out of it.
+    """
+    angle = quarter_turns.to(torch.float32) * (torch.pi / 2)  # (B,)
+    c, s = torch.cos(angle).round(), torch.sin(angle).round()  # exact 0 / ±1
+    zero, one = torch.zeros_like(c), torch.ones_like(c)
+    rot = torch.stack(
+        [torch.stack([c, -s, zero], -1), torch.stack([s, c, zero], -1), torch.stack([zero, zero, one], -1)],
+        -2,
+    )  # (B, 3, 3)
+
+    def turn(v: torch.Tensor) -> torch.Tensor:  # (B, ..., 3) row vectors
+        shape = v.shape
+        return (v.reshape(shape[0], -1, 3) @ rot.transpose(1, 2)).reshape(shape)
+
+    def turn_features(f: torch.Tensor) -> torch.Tensor:  # (B, N, 4): is_object stays, flow turns
+        return torch.cat([f[..., :1], turn(f[..., 1:])], dim=-1)
+
+    return batch._replace(
+        points=turn(batch.points),
+        features=turn_features(batch.features),
+        motion=turn(batch.motion),
+        next_points=turn(batch.next_points),
+        next_features=turn_features(batch.next_features),
+    )
+
+
 def _available_memory_bytes() -> int | None:
     try:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
@@ -149,16 +184,22 @@ class ReplayBuffer:
         self.full = self.full or self.pos + e >= self.capacity
         self.pos = int((self.pos + e) % self.capacity)
 
-    def sample(self, batch_size: int) -> ReplayBatch:
-        """Uniformly sample ``batch_size`` stored transitions (with replacement across calls)."""
+    def sample(self, batch_size: int, augment: str = "none") -> ReplayBatch:
+        """Uniformly sample ``batch_size`` stored transitions (with replacement across calls).
+
+        ``augment="yaw90"`` turns each transition's whole scene about the world z axis by a random
+        multiple of 90° (:func:`rotate_yaw90`).
+        """
         if len(self) == 0:
             raise ValueError("cannot sample from an empty replay buffer")
+        if augment not in AUGMENTATIONS:
+            raise ValueError(f"`augment` must be one of {list(AUGMENTATIONS)}. Got {augment!r}.")
         i = self.rng.integers(0, len(self), size=batch_size)
 
         def t(x: np.ndarray, dtype=torch.float32) -> torch.Tensor:
             return torch.from_numpy(x[i]).to(device=self.device, dtype=dtype)
 
-        return ReplayBatch(
+        batch = ReplayBatch(
             points=t(self.points),
             features=t(self.features),
             index=t(self.index, torch.int64),
@@ -169,6 +210,9 @@ class ReplayBuffer:
             terminated=t(self.terminated),
             truncated=t(self.truncated),
         )
+        if augment == "yaw90":
+            batch = rotate_yaw90(batch, torch.from_numpy(self.rng.integers(0, 4, size=batch_size)))
+        return batch
 
     _ARRAYS = (
         "points",

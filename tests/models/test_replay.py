@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from models.replay import ReplayBuffer
+from models.replay import ReplayBuffer, rotate_yaw90
 
 
 def transition(rng, n_obj=4, n_bg=4, e=None):
@@ -91,3 +91,43 @@ def test_save_load_resumes_sampling(tmp_path):
     for x, y in zip(a, b, strict=True):
         assert torch.equal(x, y)
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_yaw90_turns_points_flows_and_motion_alike():
+    rng = np.random.default_rng(1)
+    buf = ReplayBuffer(4, 4, 4)
+    t = transition(rng)
+    t["motion"] = np.array([1.0, 0.5, -0.2], np.float32)
+    buf.add(**t)
+    batch = buf.sample(1)
+    turned = rotate_yaw90(batch, torch.tensor([1]))  # +90° about z: (x, y, z) -> (-y, x, z)
+    np.testing.assert_array_equal(turned.motion[0].numpy(), np.float32([-0.5, 1.0, -0.2]))
+    for name in ("points", "next_points"):
+        p, q = getattr(batch, name)[0], getattr(turned, name)[0]
+        np.testing.assert_allclose(
+            q.numpy(), torch.stack([-p[:, 1], p[:, 0], p[:, 2]], -1).numpy(), atol=1e-7
+        )
+    for name in ("features", "next_features"):
+        f, g = getattr(batch, name)[0], getattr(turned, name)[0]
+        np.testing.assert_array_equal(g[:, 0].numpy(), f[:, 0].numpy())  # is_object unchanged
+        np.testing.assert_allclose(
+            g[:, 1:].numpy(), torch.stack([-f[:, 2], f[:, 1], f[:, 3]], -1).numpy(), atol=1e-7
+        )
+    for name in ("index", "reward", "terminated", "truncated"):
+        assert torch.equal(getattr(turned, name), getattr(batch, name))
+    four = batch
+    for _ in range(4):
+        four = rotate_yaw90(four, torch.tensor([1]))
+    np.testing.assert_allclose(four.points.numpy(), batch.points.numpy(), atol=1e-6)
+
+
+def test_sampling_with_yaw90_uses_all_four_turns_and_keeps_motions_in_the_box():
+    rng = np.random.default_rng(2)
+    buf = ReplayBuffer(8, 4, 4, seed=0)
+    t = transition(rng)
+    t["motion"] = np.array([1.0, -1.0, 0.3], np.float32)
+    buf.add(**t)
+    seen = {tuple(m) for m in buf.sample(64, augment="yaw90").motion.double().numpy().round(3).tolist()}
+    assert seen == {(1.0, -1.0, 0.3), (1.0, 1.0, 0.3), (-1.0, 1.0, 0.3), (-1.0, -1.0, 0.3)}
+    with pytest.raises(ValueError, match="augment"):
+        buf.sample(2, augment="flip")
