@@ -8,9 +8,15 @@ goal. It sees the simulator, so it is not a policy a robot could run; it tells h
 between a learned policy and 100 % the push primitive and the physics leave open. A learned policy
 near the searcher's figure is limited by the task; far below it, by the learner.
 
+With ``--run RUN`` the candidates are a trained policy's own: its proposed motion at each of the
+``--top`` object points it ranks highest (masked Q, as ``hydo eval`` decides). ``top = 1`` is the
+policy itself; the success at larger ``top`` is what a better *ranking* of the same proposals would
+reach, so the gap separates a critic that ranks poorly from motions that are poor.
+
 Usage::
 
     python bench/lookahead.py --candidates 8,48 --episodes 40 --json runs/bench-lookahead.json
+    python bench/lookahead.py --run runs/train/hydo-cm-s1 --top 1,4,16 --episodes 40
 
 JSON: ``{"C=<n>": {"success_rate", "mean_steps_to_success", "mean_final_distance_m",
 "max_replay_error_m", "wall_s", "episodes"}, "meta": {...}}``; ``max_replay_error_m`` is the largest
@@ -44,17 +50,50 @@ from sim.baselines import heuristic_action  # noqa: E402
 N_HEURISTIC = 4  # heuristic candidates per step (it samples among its contact points)
 
 
-def search_episode(env, n_candidates: int, seed: int, rng: np.random.Generator) -> dict:
-    """One episode of greedy one-step search; returns its outcome and the largest replay error."""
+def random_candidates(n_candidates: int, rng: np.random.Generator):
+    """``N_HEURISTIC`` heuristic pushes, the rest uniform over object points and motions."""
+
+    def propose(obs):
+        n_obj = len(obs["normals"])
+        candidates = [heuristic_action(obs, rng) for _ in range(N_HEURISTIC)]
+        return candidates + [
+            (int(rng.integers(n_obj)), rng.uniform(-1.0, 1.0, 3)) for _ in range(n_candidates - N_HEURISTIC)
+        ]
+
+    return propose
+
+
+def policy_candidates(agent, top: int, seed: int):
+    """A trained agent's proposals at its ``top`` highest-ranked feasible points, best first."""
+    import torch
+
+    from hydo_cli.trainer import stack_obs
+    from sim.primitive import feasible_points, mask_infeasible
+
+    generator = torch.Generator().manual_seed(seed)
+
+    def propose(obs):
+        points, features = stack_obs([obs])
+        with torch.no_grad():
+            _, _, info = agent.act(points, features, mode="eval", generator=generator)
+        motions = info["motions"][0].numpy()  # (N_obj, 3)
+        pts = points.numpy()
+        feasible = feasible_points(pts[:, : len(motions)], obs["normals"][None], motions[None], pts)
+        q = mask_infeasible(info["q"].numpy(), feasible)[0]  # (N_obj,), -inf where infeasible
+        order = np.argsort(-q, kind="stable")[:top]
+        return [(int(i), motions[i]) for i in order]
+
+    return propose
+
+
+def search_episode(env, propose, seed: int) -> dict:
+    """One episode of greedy one-step search over ``propose(obs)``'s candidates; returns its
+    outcome and the largest replay error."""
     obs, info = env.reset(seed=seed)
     replay_error, steps = 0.0, 0
     while True:
         snapshot = env.get_sim_state()
-        n_obj = len(obs["normals"])
-        candidates = [heuristic_action(obs, rng) for _ in range(N_HEURISTIC)]
-        candidates += [
-            (int(rng.integers(n_obj)), rng.uniform(-1.0, 1.0, 3)) for _ in range(n_candidates - N_HEURISTIC)
-        ]
+        candidates = propose(obs)
         best, best_d = candidates[0], np.inf
         for action in candidates:
             _, _, _, _, tried = env.step(action)
@@ -80,24 +119,42 @@ def search_episode(env, n_candidates: int, seed: int, rng: np.random.Generator) 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--candidates", default="8,48", help="comma-separated candidate counts C (≥ 4)")
+    ap.add_argument("--run", type=Path, help="search over this run's (or checkpoint's) own proposals")
+    ap.add_argument(
+        "--top", default="1,4,16", help="with --run: comma-separated numbers of top-ranked points"
+    )
     ap.add_argument("--episodes", type=int, default=40)
     ap.add_argument("--objects", default="train")
     ap.add_argument("--goals", default="planar", choices=["planar", "6d"])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, help="write results to this JSON file")
     args = ap.parse_args()
-    counts = [int(c) for c in args.candidates.split(",")]
-    if min(counts) < N_HEURISTIC:
-        ap.error(f"--candidates must each be ≥ {N_HEURISTIC}")
+    if args.run is None:
+        counts = [int(c) for c in args.candidates.split(",")]
+        if min(counts) < N_HEURISTIC:
+            ap.error(f"--candidates must each be ≥ {N_HEURISTIC}")
+        n_obj, n_bg = 128, 128
+    else:
+        import torch
 
-    env = gymnasium.make("hydo/Bin-v0", objects=args.objects, goals=args.goals).unwrapped
+        from hydo_cli.trainer import load_agent
+
+        torch.set_num_threads(1)
+        agent, cfg, _ = load_agent(args.run)
+        counts = [int(c) for c in args.top.split(",")]
+        n_obj, n_bg = cfg.n_obj, cfg.n_bg
+
+    env = gymnasium.make(
+        "hydo/Bin-v0", objects=args.objects, goals=args.goals, n_obj=n_obj, n_bg=n_bg
+    ).unwrapped
     results = {}
     for c in counts:
         rng = np.random.default_rng(args.seed)
+        propose = random_candidates(c, rng) if args.run is None else policy_candidates(agent, c, args.seed)
         t0 = time.perf_counter()
-        eps = [search_episode(env, c, args.seed * 100_000 + i, rng) for i in range(args.episodes)]
+        eps = [search_episode(env, propose, args.seed * 100_000 + i) for i in range(args.episodes)]
         ok = [e for e in eps if e["success"]]
-        results[f"C={c}"] = {
+        results[f"{'top' if args.run else 'C'}={c}"] = {
             "candidates": c,
             "episodes": len(eps),
             "success_rate": len(ok) / len(eps),
@@ -107,9 +164,10 @@ def main() -> None:
             "wall_s": time.perf_counter() - t0,
         }
 
-    table = Table(title=f"one-step lookahead search ({args.objects} objects, {args.goals} goals)")
+    source = f"{args.run}'s top-ranked proposals" if args.run else "heuristic + random candidates"
+    table = Table(title=f"one-step lookahead over {source} ({args.objects} objects, {args.goals} goals)")
     for col in (
-        "candidates",
+        "top" if args.run else "candidates",
         "episodes",
         "success",
         "steps to success",
