@@ -191,7 +191,7 @@ def main() -> None:
     if args.json:
         meta = {"command": "python " + " ".join(sys.argv), "python": platform.python_version(), **vars(args)}
         meta["json"] = str(args.json)
-        atomic_write_text(args.json, json.dumps({**results, "meta": meta}, indent=2))
+        atomic_write_text(args.json, json.dumps({**results, "meta": meta}, indent=2, default=str))
 
 
 if __name__ == "__main__":
