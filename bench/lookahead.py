@@ -64,23 +64,21 @@ def random_candidates(n_candidates: int, rng: np.random.Generator):
 
 
 def policy_candidates(agent, top: int, seed: int):
-    """A trained agent's proposals at its ``top`` highest-ranked feasible points, best first."""
+    """A trained agent's proposals at its ``top`` highest-ranked feasible points, best first (the
+    ranking ``hydo eval`` decides on: ``HybridAgent.act``'s masked Q)."""
     import torch
 
     from hydo_cli.trainer import stack_obs
-    from sim.primitive import feasible_points, mask_infeasible
 
     generator = torch.Generator().manual_seed(seed)
 
     def propose(obs):
         points, features = stack_obs([obs])
+        normals = torch.from_numpy(obs["normals"][None])
         with torch.no_grad():
-            _, _, info = agent.act(points, features, mode="eval", generator=generator)
+            _, _, info = agent.act(points, features, mode="eval", generator=generator, normals=normals)
         motions = info["motions"][0].numpy()  # (N_obj, 3)
-        pts = points.numpy()
-        feasible = feasible_points(pts[:, : len(motions)], obs["normals"][None], motions[None], pts)
-        q = mask_infeasible(info["q"].numpy(), feasible)[0]  # (N_obj,), -inf where infeasible
-        order = np.argsort(-q, kind="stable")[:top]
+        order = np.argsort(-info["q_select"][0].numpy(), kind="stable")[:top]
         return [(int(i), motions[i]) for i in order]
 
     return propose

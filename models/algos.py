@@ -442,7 +442,8 @@ class HybridAgent:
         Q at each point is scored on the motion proposed at that point (TD3: Q1, as HACMan; SAC: the
         twin minimum). With the object points' unit ``normals (B, N_obj, 3)``, the location is chosen
         among the points whose push can run (``sim.primitive.feasible_points`` with ``workspace``;
-        all points if none can). ``info``: ``q (B, N_obj)`` (unmasked), ``location_probs (B, N_obj)``,
+        all points if none can). ``info``: ``q (B, N_obj)`` (unmasked), ``q_select (B, N_obj)`` (the Q the
+        location is chosen on: −inf at infeasible points), ``location_probs (B, N_obj)``,
         ``motions (B, N_obj, 3)``, ``motion_log_prob (B,)`` (log-prob estimate of the chosen point's
         motion).
         """
@@ -476,7 +477,13 @@ class HybridAgent:
         motion = motions[rows, index]  # (B, 3)
         if mode == "explore" and not self.is_sac and cfg.explore_motion_std > 0:
             motion = (motion + cfg.explore_motion_std * torch.randn(b, 3, generator=generator)).clamp(-1, 1)
-        info = {"q": q, "location_probs": probs, "motions": motions, "motion_log_prob": log_prob[rows, index]}
+        info = {
+            "q": q,
+            "q_select": q_select,
+            "location_probs": probs,
+            "motions": motions,
+            "motion_log_prob": log_prob[rows, index],
+        }
         return index, motion, info
 
     # ------------------------------------------------------------------ learning

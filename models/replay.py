@@ -42,6 +42,12 @@ class ReplayBatch(NamedTuple):
 
 
 AUGMENTATIONS = ("none", "yaw90")
+#: Rotations about z by 0, 90, 180 and 270 degrees (exact), indexed by the number of quarter turns.
+_QUARTER_TURNS = torch.tensor(
+    [[[1, 0, 0], [0, 1, 0], [0, 0, 1]], [[0, -1, 0], [1, 0, 0], [0, 0, 1]],
+     [[-1, 0, 0], [0, -1, 0], [0, 0, 1]], [[0, 1, 0], [-1, 0, 0], [0, 0, 1]]],
+    dtype=torch.float32,
+)  # fmt: skip
 
 
 def rotate_yaw90(batch: ReplayBatch, quarter_turns: torch.Tensor) -> ReplayBatch:
@@ -52,13 +58,7 @@ def rotate_yaw90(batch: ReplayBatch, quarter_turns: torch.Tensor) -> ReplayBatch
     turned bin. Multiples of 90° only: they map the motion box [-1, 1]³ onto itself, where other
     angles would push motions out of it.
     """
-    angle = quarter_turns.to(torch.float32) * (torch.pi / 2)  # (B,)
-    c, s = torch.cos(angle).round(), torch.sin(angle).round()  # exact 0 / ±1
-    zero, one = torch.zeros_like(c), torch.ones_like(c)
-    rot = torch.stack(
-        [torch.stack([c, -s, zero], -1), torch.stack([s, c, zero], -1), torch.stack([zero, zero, one], -1)],
-        -2,
-    )  # (B, 3, 3)
+    rot = _QUARTER_TURNS[quarter_turns]  # (B, 3, 3)
 
     def turn(v: torch.Tensor) -> torch.Tensor:  # (B, ..., 3) row vectors
         shape = v.shape

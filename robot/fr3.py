@@ -184,7 +184,7 @@ class FR3Executor(Executor):
             )
             stop = fr.CartesianStopMotion()
             force2 = M.FORCE_X * M.FORCE_X + M.FORCE_Y * M.FORCE_Y + M.FORCE_Z * M.FORCE_Z
-            reaction = fr.Reaction(force2 > lim.force_stop**2, fr.CartesianStopMotion())
+            reaction = fr.Reaction(force2 > lim.force_stop**2, stop)
             reaction.register_callback(lambda *_: fired.set())
             motion.add_reaction(reaction)
         # The cell's deadline on every move (REL_TIME is seconds since this motion started): a move

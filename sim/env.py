@@ -274,6 +274,7 @@ class BinEnv(gym.Env):
         if self._obs is None:
             raise RuntimeError("call reset() before get_sim_state()")
         return {
+            "scene": self.scene,
             "physics": self.scene.get_state(),
             "obs": {k: v.copy() for k, v in self._obs.items()},
             "steps": self._steps,
@@ -284,6 +285,8 @@ class BinEnv(gym.Env):
 
     def set_sim_state(self, snapshot: dict) -> None:
         """Return to a ``get_sim_state`` snapshot taken in this episode (same scene)."""
+        if snapshot["scene"] is not self.scene:
+            raise ValueError("the snapshot belongs to another episode's scene: take it after this reset()")
         self.scene.set_state(snapshot["physics"])
         self._obs = {k: v.copy() for k, v in snapshot["obs"].items()}
         self._steps, self.goal_pose = snapshot["steps"], snapshot["goal_pose"]

@@ -24,11 +24,13 @@ from sim.objects import ObjectAsset
 from sim.primitive import BIN_INNER_SIZE_M, PUSH_SEGMENTS
 
 ASSETS = Path(__file__).parent / "assets"
+# What get_state/set_state carry: MuJoCo's full integration state. qpos/qvel/ctrl alone leave out the
+# solver's warm start, and a push replayed from such a state ended up to 6.6 cm elsewhere.
+_FULL_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 PARK_POS = np.array([0.0, 0.0, 1.5])  # hand parked far above the bin, outside every camera's view
 
 OBJECT_DENSITY = 400.0  # kg/m^3, light wood/plastic: a 10 cm object weighs 0.1-0.4 kg
 OBJECT_FRICTION = (0.5, 0.005, 0.0001)  # sliding, torsional, rolling
-_FULL_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 APPROACH_SPEED = 0.2  # m/s, fingertip speed from pre-contact to contact
 PUSH_SPEED = 0.15  # m/s, fingertip speed while pushing
 TRACK_STEPS = 10  # physics steps (50 ms) to let the actuators converge after each push target

@@ -110,6 +110,10 @@ def test_sim_state_snapshot_replays_a_push_exactly():
     _, _, _, _, again = env.step((index, motion))
     np.testing.assert_array_equal(np.concatenate(env.scene.object_pose()), pose)
     assert again["distance"] == first["distance"]
+    other = next(a.name for a in env.assets if a.name != first["object"])
+    env.reset(seed=4, options={"object": other})
+    with pytest.raises(ValueError, match="another episode's scene"):
+        env.set_sim_state(snapshot)
 
 
 def test_truncation_after_ten_primitives():
