@@ -26,7 +26,16 @@ from rich.console import Console
 from rich.table import Table
 
 from hydo_cli.errors import HydoError
-from hydo_cli.options import ClutterOpt, Goals, GoalsOpt, ObjectsOpt, ObsSource, SeedOpt, TaskOpt
+from hydo_cli.options import (
+    ClutterOpt,
+    EvalWeights,
+    Goals,
+    GoalsOpt,
+    ObjectsOpt,
+    ObsSource,
+    SeedOpt,
+    TaskOpt,
+)
 from sim.atomic import atomic_write_text
 
 HELP = """Evaluate policies: success per run, IQM [95% CI] across runs, the paper's Table I (--compare).
@@ -419,6 +428,15 @@ def evaluate(
             "(as in training and deploy); --any-point takes the plain argmax (refused pushes cost a step).",
         ),
     ] = True,
+    weights: Annotated[
+        EvalWeights | None,
+        typer.Option(
+            "--weights",
+            help="Weights a run or checkpoint acts with: average (the Polyak-averaged target networks) or "
+            "online (the last gradient step's). Default: what the run was trained with (average unless "
+            "its config says otherwise). Exported models hold the weights they were exported with.",
+        ),
+    ] = None,
 ) -> None:
     from hydo_cli.policies import load_policy
     from hydo_cli.rollout import run_episodes
@@ -450,7 +468,8 @@ def evaluate(
     splits = [task_def.name] if task_def else list(COMPARE_SPLITS) if compare else [objects]
 
     # 2. load every target first: a bad one fails in a second, not after the others ran
-    loaded = [load_policy(t, seed=seed, feasible_only=feasible_only) for t in targets]
+    w = None if weights is None else weights.value
+    loaded = [load_policy(t, seed=seed, feasible_only=feasible_only, weights=w) for t in targets]
 
     # 3. run: same episodes for every run; envs per split and point counts
     frames: list = []
@@ -529,6 +548,7 @@ def evaluate(
         "splits": splits,
         "compare": compare,
         "feasible_only": feasible_only,
+        "weights": w,
         "task": None
         if task_def is None
         else {

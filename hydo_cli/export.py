@@ -35,47 +35,6 @@ OPSET = 18
 console = Console(stderr=True)
 
 
-def _graphs(agent):
-    """The three ``nn.Module``s with exactly the ONNX interface's inputs and outputs."""
-    import torch
-    from torch import nn
-
-    deterministic = not agent.motion_policy.stochastic_eval  # same as agent.act(mode="eval")
-
-    class Encoder(nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.encoder = agent.encoder
-
-        def forward(self, points, features):  # (B, N, 3), (B, N, 4) -> (B, N_obj, D)
-            return self.encoder(points, features)
-
-    class Actor(nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.policy = agent.motion_policy
-
-        def forward(self, point_features, noise):  # (B, M, D), (B, M, S, 3) -> (B, M, 3)
-            motion, _ = self.policy.sample(point_features, noise, deterministic=deterministic)
-            # Deterministic policies ignore their noise; keep it a graph input so every export has
-            # the same interface (adds an exact zero).
-            return motion + 0.0 * noise[:, :, 0, :]
-
-    class Critic(nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.critic = agent.critic
-
-        def forward(self, point_features, motion):  # (B, M, D), (B, M, 3) -> (B, M, 2)
-            return self.critic(point_features, motion)
-
-    mods = [Encoder().eval(), Actor().eval(), Critic().eval()]
-    for m in mods:
-        for p in m.parameters():
-            p.requires_grad_(False)
-    return mods, torch
-
-
 def _export_one(torch, module, args, names_in, names_out, path, dynamic):
     try:
         torch.onnx.export(
@@ -120,12 +79,12 @@ def verify(folder: Path, agent, torch, observations, rng: np.random.Generator) -
     for points, features in observations:
         noise = policy.noise(points.shape[0], rng)
         ort = policy.decide(points, features, noise)
-        with torch.no_grad():
-            pt, ft = torch.from_numpy(points), torch.from_numpy(features)
-            f = agent.encoder(pt, ft)
-            det = not agent.motion_policy.stochastic_eval
-            motions, _ = agent.motion_policy.sample(f, torch.from_numpy(noise), deterministic=det)
-            q_twin = agent.critic(f, motions)
+        with torch.no_grad():  # the networks hydo eval acts with, fed the same noise
+            nets = agent.acting_networks("eval")
+            f = nets.encoder(torch.from_numpy(points), torch.from_numpy(features))
+            det = not nets.motion_policy.stochastic_eval
+            motions, _ = nets.motion_policy.sample(f, torch.from_numpy(noise), deterministic=det)
+            q_twin = nets.critic(f, motions)
             q = q_twin.amin(-1) if agent.is_sac else q_twin[..., 0]
         max_motion = max(max_motion, float(np.abs(ort["motions"] - motions.numpy()).max()))
         max_q = max(max_q, float(np.abs(ort["q"] - q.numpy()).max()))
@@ -151,7 +110,9 @@ def verify(folder: Path, agent, torch, observations, rng: np.random.Generator) -
 def export_agent(agent, cfg, command: str, out: Path, seed: int = 0, n_checks: int = 128) -> dict:
     """Export ``agent`` (trained with ``cfg``) to ``out``; returns the verification report."""
     import onnx
+    import torch
 
+    from models.export import export_modules
     from robot.onnx_interface import (
         ACTOR_INPUTS,
         ACTOR_OUTPUTS,
@@ -165,7 +126,8 @@ def export_agent(agent, cfg, command: str, out: Path, seed: int = 0, n_checks: i
     from robot.onnx_policy import sha256_file
     from sim.contract import FEATURE_DIM, OBS_CONTRACT_VERSION
 
-    (enc, act, cri), torch = _graphs(agent)
+    graphs = export_modules(agent)
+    enc, act, cri = graphs["encoder"], graphs["actor"], graphs["critic"]
     n = cfg.n_obj + cfg.n_bg
     d = agent.config.feature_dim
     s = agent.motion_policy.n_noise

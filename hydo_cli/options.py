@@ -18,6 +18,14 @@ class ObsSource(str, Enum):
     render = "render"
 
 
+class EvalWeights(str, Enum):
+    """Weights a trained agent acts with in evaluation (``models.algos.EVAL_WEIGHTS``; a test keeps
+    the two lists equal)."""
+
+    average = "average"
+    online = "online"
+
+
 class TaskName(str, Enum):
     """Behaviour-diversity tasks (``sim.tasks.TASKS``; a test keeps the two lists equal)."""
 

@@ -21,11 +21,14 @@ class LoadedPolicy:
     method: str = ""  # what --compare groups by: the run's / manifest's algo, or the baseline's name
 
 
-def load_policy(target: str, seed: int = 0, feasible_only: bool = True) -> LoadedPolicy:
+def load_policy(
+    target: str, seed: int = 0, feasible_only: bool = True, weights: str | None = None
+) -> LoadedPolicy:
     """A baseline name, a run directory (its latest checkpoint) or a checkpoint file.
 
     ``feasible_only``: learned policies choose among points whose push can run
-    (``sim.primitive.feasible_points``)."""
+    (``sim.primitive.feasible_points``). ``weights``: "average" | "online" overrides a run's or
+    checkpoint's ``AgentConfig.eval_weights`` (None keeps it; baselines and exported models ignore it)."""
     if target in BASELINES:
         return LoadedPolicy(baseline_policy(target, seed), None, None, target == "random", target, target)
     path = Path(target)
@@ -47,7 +50,7 @@ def load_policy(target: str, seed: int = 0, feasible_only: bool = True) -> Loade
         raise HydoError(f"eval target '{target}' is one graph of a model: give its folder ({path.parent})")
     from hydo_cli.train import load_agent_policy
 
-    return load_agent_policy(path, seed, feasible_only)
+    return load_agent_policy(path, seed, feasible_only, weights)
 
 
 def load_onnx_policy(folder: Path, seed: int, feasible_only: bool = True) -> LoadedPolicy:

@@ -279,8 +279,8 @@ def train(
     trainer.run()
 
 
-def load_agent_policy(path: Path, seed: int, feasible_only: bool = True):
+def load_agent_policy(path: Path, seed: int, feasible_only: bool = True, weights: str | None = None):
     """A run directory or checkpoint → ``hydo_cli.policies.LoadedPolicy`` (eval-mode agent)."""
     from hydo_cli.trainer import load_policy_from_checkpoint
 
-    return load_policy_from_checkpoint(path, seed, feasible_only)
+    return load_policy_from_checkpoint(path, seed, feasible_only, weights)

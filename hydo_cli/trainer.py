@@ -351,9 +351,14 @@ def load_agent(path: Path) -> tuple[HybridAgent, TrainConfig, str]:
     return agent, cfg, command
 
 
-def load_policy_from_checkpoint(path: Path, seed: int, feasible_only: bool = True) -> LoadedPolicy:
-    """A run directory or checkpoint file → eval-mode batched policy."""
+def load_policy_from_checkpoint(
+    path: Path, seed: int, feasible_only: bool = True, weights: str | None = None
+) -> LoadedPolicy:
+    """A run directory or checkpoint file → eval-mode batched policy (``weights`` overrides the
+    agent's ``eval_weights``: "average" | "online")."""
     agent, cfg, _ = load_agent(path)
+    if weights is not None:
+        agent.config = dataclasses.replace(agent.config, eval_weights=weights)
     policy = agent_policy(agent, "eval", torch.Generator().manual_seed(seed), feasible_only)
     return LoadedPolicy(
         policy, cfg.n_obj, cfg.n_bg, agent.motion_policy.stochastic_eval, f"{cfg.algo} ({path})", cfg.algo

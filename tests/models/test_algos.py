@@ -6,7 +6,7 @@ import pytest
 import torch
 from learner_util import SMALL, random_obs
 
-from models.algos import ALGOS, AgentConfig, HybridAgent, actor_surrogate_weights, frozen
+from models.algos import ALGOS, EVAL_WEIGHTS, AgentConfig, HybridAgent, actor_surrogate_weights, frozen
 from models.checkpoint import load_checkpoint, save_checkpoint
 from models.export import export_modules
 from models.heads import location_policy
@@ -167,9 +167,49 @@ def test_load_refuses_other_config():
         b.load_state_dict(a.state_dict())
 
 
+def diverged_agent(algo: str, **config) -> HybridAgent:
+    """An agent whose Polyak-averaged targets differ clearly from its online networks."""
+    agent = HybridAgent(AgentConfig(algo=algo, tau=0.5, policy_delay=1, **SMALL, **config))
+    for i in range(3):
+        agent.update(make_batch(8, 16, 16, seed=i))
+    return agent
+
+
+@pytest.mark.parametrize("algo", ["hacman", "hydo-cm"])
+def test_eval_acts_with_the_averaged_weights(algo):
+    agent = diverged_agent(algo)
+    nets = agent.acting_networks("eval")
+    assert nets.encoder is agent.encoder_target and nets.critic is agent.critic_target
+    # TD3 has a target motion policy and acts with it; SAC's only motion policy is the online one
+    assert nets.motion_policy is (agent.motion_policy_target or agent.motion_policy)
+    assert agent.acting_networks("explore").encoder is agent.encoder
+    points, features = random_obs(3, 16, 16)
+
+    def q(mode: str) -> torch.Tensor:
+        return agent.act(points, features, mode, torch.Generator().manual_seed(0))[2]["q"]
+
+    q_eval, q_explore = q("eval"), q("explore")
+    with torch.no_grad():  # a disturbed online encoder moves exploration, not evaluation
+        for p in agent.encoder.parameters():
+            p.add_(torch.randn_like(p))
+    assert torch.equal(q("eval"), q_eval)
+    assert not torch.allclose(q("explore"), q_explore)
+    agent.config = dataclasses.replace(agent.config, eval_weights="online")
+    assert agent.acting_networks("eval").encoder is agent.encoder
+    assert not torch.allclose(q("eval"), q_eval)
+    with pytest.raises(ValueError, match=r"`eval_weights` must be one of \['average', 'online'\]"):
+        AgentConfig(eval_weights="ema")
+
+
+def test_eval_weights_option_matches_the_agent():
+    from hydo_cli.options import EvalWeights
+
+    assert [w.value for w in EvalWeights] == list(EVAL_WEIGHTS)
+
+
 @pytest.mark.parametrize("algo", ["hacman", "hydo-gauss", "hydo-cm"])
 def test_export_modules_reproduce_eval_act(algo):
-    agent = HybridAgent(AgentConfig(algo=algo, **SMALL))
+    agent = diverged_agent(algo)  # the export must hold the averaged weights eval acts with
     mods = export_modules(agent)
     points, features = random_obs(3, 16, 16)
     gen = torch.Generator().manual_seed(7)
