@@ -43,7 +43,7 @@ from torch.nn import functional as F
 
 from models.common import check_shape, polyak_update
 from models.encoder import PointEncoder
-from models.heads import TwinQ, location_policy
+from models.heads import TwinQ, hl_gauss_targets, location_policy
 from models.motion import (
     CHAIN_ENTROPY,
     MOTION_DIM,
@@ -77,6 +77,7 @@ ALGOS: dict[str, AlgoSpec] = {
 }
 
 MODES = ("explore", "eval")
+HL_GAUSS_SIGMA_BINS = 0.75  # HL-Gauss σ in bin widths (Farebrother et al. 2024's recommended ratio)
 EVAL_WEIGHTS = ("average", "online")
 AGENT_FORMAT = "hydo-agent/1"
 
@@ -114,6 +115,13 @@ class AgentConfig:
     """Width of each Q head."""
     critic_layer_norm: bool = False
     """LayerNorm after the Q heads' first layer (off by default: ~2 ms of a ~30 ms update)."""
+    critic_bins: int = 0
+    """K > 0: categorical Q heads over K value bins trained with the HL-Gauss cross-entropy
+    (``heads.TwinQ``); 0: scalar Q heads and squared error (as HACMan and the paper)."""
+    critic_value_min: float = -4.0
+    """Lowest bin edge of a categorical critic (Q is in metres of goal flow summed over primitives)."""
+    critic_value_max: float = 0.5
+    """Highest bin edge of a categorical critic (above 0 only by the entropy bonuses)."""
     eval_weights: str = "average"
     """Weights that act in ``mode="eval"`` (evaluation, export, deploy): "average", the Polyak-averaged
     target encoder and critic (and TD3's target motion policy; SAC has no target policy, its online one
@@ -221,6 +229,12 @@ class AgentConfig:
         check(
             self.actor_points is None or self.actor_points >= 1,
             f"`actor_points` must be None or ≥ 1. Got {self.actor_points}.",
+        )
+        check(
+            self.critic_bins == 0
+            or (self.critic_bins >= 2 and self.critic_value_min < self.critic_value_max),
+            f"`critic_bins` must be 0 or ≥ 2 with critic_value_min < critic_value_max. Got {self.critic_bins}, "
+            f"[{self.critic_value_min}, {self.critic_value_max}].",
         )
         for name in ("feature_dim", "encoder_hidden", "encoder_global", "actor_hidden", "critic_hidden"):
             check(getattr(self, name) >= 1, f"`{name}` must be ≥ 1. Got {getattr(self, name)}.")
@@ -376,7 +390,13 @@ class HybridAgent:
                 knn=config.encoder_knn,
                 length_scale=config.length_scale,
             )
-            self.critic = TwinQ(config.feature_dim, config.critic_hidden, config.critic_layer_norm)
+            self.critic = TwinQ(
+                config.feature_dim,
+                config.critic_hidden,
+                config.critic_layer_norm,
+                bins=config.critic_bins,
+                value_range=(config.critic_value_min, config.critic_value_max),
+            )
             self.motion_policy: MotionPolicy = make_motion_policy(
                 spec.motion,
                 config.feature_dim,
@@ -590,8 +610,18 @@ class HybridAgent:
             target_q = batch.reward + cfg.gamma * (1.0 - batch.terminated) * v_next  # (B,)
 
         # 3. Critic loss on the executed (index, motion); trains encoder + critic.
-        q_taken = self.critic(f_taken, batch.motion)  # (B, 2)
-        critic_loss = F.mse_loss(q_taken[:, 0], target_q) + F.mse_loss(q_taken[:, 1], target_q)
+        if cfg.critic_bins:  # HL-Gauss: cross-entropy to the target smeared over bins (σ = 0.75 bin)
+            logits = self.critic.logits(f_taken, batch.motion)  # (B, 2, K)
+            edges = self.critic.bin_edges
+            probs = hl_gauss_targets(
+                target_q, edges, HL_GAUSS_SIGMA_BINS * float(edges[1] - edges[0])
+            )  # (B, K)
+            critic_loss = -(probs[:, None] * torch.log_softmax(logits, -1)).sum(-1).mean(0).sum()
+            with torch.no_grad():
+                q_taken = torch.softmax(logits, -1) @ self.critic.bin_centres  # (B, 2)
+        else:
+            q_taken = self.critic(f_taken, batch.motion)  # (B, 2)
+            critic_loss = F.mse_loss(q_taken[:, 0], target_q) + F.mse_loss(q_taken[:, 1], target_q)
         self.critic_optimizer.zero_grad(set_to_none=True)
         critic_loss.backward()
         self.critic_optimizer.step()

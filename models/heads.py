@@ -24,11 +24,27 @@ class TwinQ(nn.Module):
     layer: on the 2-core CPU an update is bound as much by per-op overhead as by FLOPs. LayerNorm
     (optional) keeps the heads' inputs at unit scale while the encoder drifts, which stabilises TD
     learning (as in DroQ / REDQ-style critics).
+
+    With ``bins = K > 0`` each head is a classifier over K value bins spanning ``value_range`` (HL-Gauss,
+    Farebrother et al. 2024, "Stop Regressing"): the last layer emits K logits and ``Q`` is the
+    softmax's mean bin value, so callers still read a scalar Q per head; :meth:`logits` feeds the
+    cross-entropy loss of :func:`hl_gauss_targets`. A push that reaches the goal ends the episode
+    (Q ≈ −0.03) while one that stops just short keeps paying (Q ≈ −0.5): a cliff in action space that
+    a squared-error fit blurs and a categorical fit can keep sharp.
     """
 
-    def __init__(self, feature_dim: int, hidden: int = 64, layer_norm: bool = False) -> None:
+    def __init__(
+        self,
+        feature_dim: int,
+        hidden: int = 64,
+        layer_norm: bool = False,
+        bins: int = 0,
+        value_range: tuple[float, float] = (-4.0, 0.5),
+    ) -> None:
         super().__init__()
-        self.hidden, self.layer_norm = hidden, layer_norm
+        if bins == 1 or bins < 0:
+            raise ValueError(f"`bins` must be 0 (scalar Q) or ≥ 2. Got {bins}.")
+        self.hidden, self.layer_norm, self.bins = hidden, layer_norm, bins
         d_in = feature_dim + MOTION_DIM
 
         def uniform(*shape: int, fan_in: int) -> nn.Parameter:  # nn.Linear's default init
@@ -39,15 +55,28 @@ class TwinQ(nn.Module):
         self.ln_weight = nn.Parameter(torch.ones(2, 1, hidden))
         self.ln_bias = nn.Parameter(torch.zeros(2, 1, hidden))
         self.w2, self.b2 = uniform(2, hidden, hidden, fan_in=hidden), uniform(2, 1, hidden, fan_in=hidden)
-        # (2, 1, H) used transposed: a 1-column matmul is ~3× faster on CPU in that layout.
-        self.w3, self.b3 = uniform(2, 1, hidden, fan_in=hidden), uniform(2, 1, 1, fan_in=hidden)
+        if bins:
+            self.w3, self.b3 = uniform(2, hidden, bins, fan_in=hidden), uniform(2, 1, bins, fan_in=hidden)
+            lo, hi = value_range
+            self.register_buffer("bin_edges", torch.linspace(lo, hi, bins + 1))  # (K+1,)
+            self.register_buffer("bin_centres", (self.bin_edges[1:] + self.bin_edges[:-1]) / 2)  # (K,)
+        else:
+            # (2, 1, H) used transposed: a 1-column matmul is ~3× faster on CPU in that layout.
+            self.w3, self.b3 = uniform(2, 1, hidden, fan_in=hidden), uniform(2, 1, 1, fan_in=hidden)
 
-    def _heads(self, x: torch.Tensor, n: int) -> torch.Tensor:
-        """``x (R, D+3)`` → ``(n, R)`` for the first ``n`` heads."""
+    def _hidden(self, x: torch.Tensor, n: int) -> torch.Tensor:
+        """``x (R, D+3)`` → last hidden layer ``(n, R, H)`` of the first ``n`` heads."""
         h = torch.baddbmm(self.b1[:n], x.expand(n, *x.shape), self.w1[:n])  # (n, R, H)
         if self.layer_norm:
             h = torch.addcmul(self.ln_bias[:n], F.layer_norm(h, (self.hidden,)), self.ln_weight[:n])
-        h = torch.relu(torch.baddbmm(self.b2[:n], torch.relu(h), self.w2[:n]))  # (n, R, H)
+        return torch.relu(torch.baddbmm(self.b2[:n], torch.relu(h), self.w2[:n]))  # (n, R, H)
+
+    def _heads(self, x: torch.Tensor, n: int) -> torch.Tensor:
+        """``x (R, D+3)`` → Q ``(n, R)`` for the first ``n`` heads."""
+        h = self._hidden(x, n)
+        if self.bins:
+            probs = torch.softmax(torch.baddbmm(self.b3[:n], h, self.w3[:n]), dim=-1)  # (n, R, K)
+            return probs @ self.bin_centres  # (n, R)
         return torch.baddbmm(self.b3[:n], h, self.w3[:n].transpose(1, 2)).squeeze(-1)  # (n, R)
 
     def forward(self, f: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -60,6 +89,25 @@ class TwinQ(nn.Module):
         """First head only ``(...)``: TD3's actor loss reads Q1 (half the cost of both)."""
         x = torch.cat([f, a], dim=-1)
         return self._heads(x.reshape(-1, x.shape[-1]), 1).reshape(f.shape[:-1])
+
+    def logits(self, f: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """Bin logits of both heads ``(..., 2, K)`` (only with ``bins > 0``)."""
+        if not self.bins:
+            raise ValueError("logits() needs a categorical critic (bins > 0)")
+        x = torch.cat([f, a], dim=-1)
+        h = self._hidden(x.reshape(-1, x.shape[-1]), 2)  # (2, R, H)
+        z = torch.baddbmm(self.b3, h, self.w3)  # (2, R, K)
+        return z.transpose(0, 1).reshape(*f.shape[:-1], 2, self.bins)
+
+
+def hl_gauss_targets(target: torch.Tensor, bin_edges: torch.Tensor, sigma: float) -> torch.Tensor:
+    """HL-Gauss class probabilities ``(B, K)`` of scalar targets ``(B,)``: the mass a normal
+    N(target, σ²), truncated to the bins' span, puts in each bin (targets outside are clamped in)."""
+    lo, hi = bin_edges[0], bin_edges[-1]
+    y = target.clamp(lo, hi)[:, None]  # (B, 1)
+    cdf = torch.special.erf((bin_edges[None] - y) / (math.sqrt(2.0) * sigma))  # (B, K+1), 2Φ − 1
+    mass = cdf[:, 1:] - cdf[:, :-1]  # (B, K)
+    return mass / (cdf[:, -1:] - cdf[:, :1])
 
 
 def location_policy(q: torch.Tensor, temperature: torch.Tensor | float) -> tuple[torch.Tensor, torch.Tensor]:

@@ -41,6 +41,28 @@ def test_parity_and_manifest(exported):
     assert json.loads(props["algo"]) == cfg.algo
 
 
+def test_categorical_critic_exports_with_parity(tmp_path):
+    """The HL-Gauss critic's softmax-over-bins mean exports with the same interface and tolerance."""
+    cfg = TrainConfig(algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent={**TINY, "critic_bins": 16})
+    agent = HybridAgent(agent_config(cfg))
+    report = export_agent(agent, cfg, "pytest", tmp_path / "model", n_checks=32)
+    assert report["max_abs_error_motion"] <= 1e-4 and report["max_abs_error_q"] <= 1e-4
+    assert report["index_agreement"] == 1.0
+    policy = OnnxPolicy.load(tmp_path / "model")
+    q = policy.decide(*_observation(), noise=policy.noise(1, np.random.default_rng(0)))["q"]
+    lo, hi = agent.config.critic_value_min, agent.config.critic_value_max
+    assert q.shape == (1, 32) and np.all((q >= lo) & (q <= hi))
+
+
+def _observation():
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-0.1, 0.1, (1, 48, 3)).astype(np.float32)
+    feats = np.zeros((1, 48, 4), np.float32)
+    feats[:, :32, 0] = 1
+    feats[:, :32, 1:] = rng.normal(0, 0.05, (1, 32, 3))
+    return pts, feats
+
+
 def test_fixed_noise_gives_identical_motions(exported):
     out, _, agent, cfg = exported
     policy = OnnxPolicy.load(out)

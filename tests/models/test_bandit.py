@@ -48,9 +48,15 @@ def store(buf: ReplayBuffer, points, features, index, motion) -> None:
     buf.add(p, f, index, motion, reward(index, motion), p, f, done, ~done)
 
 
+# The categorical (HL-Gauss) critic, with bins spanning this task's returns.
+CATEGORICAL = dict(critic_bins=32, critic_value_min=-0.5, critic_value_max=1.5)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("algo", list(ALGOS))
-def test_bandit_is_solved(algo):
+@pytest.mark.parametrize(
+    "algo,critic", [(a, {}) for a in ALGOS] + [("hydo-cm", CATEGORICAL)], ids=[*ALGOS, "hydo-cm-hlgauss"]
+)
+def test_bandit_is_solved(algo, critic):
     seed = 0
     points, features = scene()
     cfg = AgentConfig(
@@ -65,6 +71,7 @@ def test_bandit_is_solved(algo):
         location_beta=0.1,
         init_alpha_loc=0.1,
         init_alpha_motion=0.01,
+        **critic,
     )
     agent = HybridAgent(cfg)
     buf = ReplayBuffer(PREFILL + UPDATES * EXPLORE_ENVS, N_OBJ, N_BG, seed=seed)
