@@ -83,3 +83,18 @@ def test_train_resume_eval_export(tmp_path):
     r = hydo("export", str(run), "--out", str(tmp_path / "model"))
     assert r.returncode == 0, r.stderr[-2000:]
     assert (tmp_path / "model" / "manifest.json").is_file()
+
+
+def test_every_shipped_config_resolves():
+    """configs/**/*.toml: every key is a TrainConfig field and every [agent] key an AgentConfig field."""
+    from pathlib import Path
+
+    from hydo_cli.train import resolve_config
+    from hydo_cli.trainer import agent_config
+
+    root = Path(__file__).resolve().parents[1] / "configs"
+    files = sorted(root.rglob("*.toml"))
+    assert len(files) >= 10
+    for path in files:
+        cfg = resolve_config(None, path, {"algo": "hydo-cm"})
+        agent_config(cfg)  # raises on an unknown or invalid agent field
