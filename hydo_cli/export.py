@@ -70,8 +70,10 @@ def _real_observations(cfg, n: int, seed: int):
     return out
 
 
-def verify(folder: Path, agent, torch, observations, rng: np.random.Generator) -> dict:
-    """onnxruntime vs torch on ``observations`` (list of (points, features)); raise on mismatch."""
+def verify(folder: Path, agent, graphs, torch, observations, rng: np.random.Generator) -> dict:
+    """onnxruntime vs the exported torch ``graphs`` (``models.export.export_modules``, which decide as
+    ``hydo eval`` does: tests/models/test_algos.py) on ``observations`` (list of (points, features)),
+    fed the same noise; raise on mismatch."""
     from robot.onnx_policy import OnnxPolicy
 
     policy = OnnxPolicy.load(folder)
@@ -79,13 +81,10 @@ def verify(folder: Path, agent, torch, observations, rng: np.random.Generator) -
     for points, features in observations:
         noise = policy.noise(points.shape[0], rng)
         ort = policy.decide(points, features, noise)
-        with torch.no_grad():  # the networks hydo eval acts with, fed the same noise
-            nets = agent.acting_networks("eval")
-            f = nets.encoder(torch.from_numpy(points), torch.from_numpy(features))
-            det = not nets.motion_policy.stochastic_eval
-            motions, _ = nets.motion_policy.sample(f, torch.from_numpy(noise), deterministic=det)
-            q_twin = nets.critic(f, motions)
-            q = q_twin.amin(-1) if agent.is_sac else q_twin[..., 0]
+        with torch.no_grad():
+            f = graphs["encoder"](torch.from_numpy(points), torch.from_numpy(features))
+            motions = graphs["actor"](f, torch.from_numpy(noise))
+            q = agent.decision_q(graphs["critic"](f, motions))
         max_motion = max(max_motion, float(np.abs(ort["motions"] - motions.numpy()).max()))
         max_q = max(max_q, float(np.abs(ort["q"] - q.numpy()).max()))
         # Same point, or a point whose torch Q ties the best within the tolerance (an untrained
@@ -234,7 +233,7 @@ def export_agent(agent, cfg, command: str, out: Path, seed: int = 0, n_checks: i
             f[: cfg.n_obj, 1:] = rng.normal(0, 0.1, (cfg.n_obj, 3)).astype(np.float32)
             rnd.append((p, f))
         checks.append((np.stack([p for p, _ in rnd]), np.stack([f for _, f in rnd])))
-        report = verify(tmp, agent, torch, checks, rng)
+        report = verify(tmp, agent, graphs, torch, checks, rng)
         manifest["verification"] = report
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
         tmp.chmod(0o755)  # mkdtemp makes it private; a model folder is meant to be shared

@@ -470,6 +470,11 @@ class HybridAgent:
             return ActingNetworks(self.encoder_target, motion, self.critic_target)
         return ActingNetworks(self.encoder, self.motion_policy, self.critic)
 
+    def decision_q(self, q_twin: torch.Tensor) -> torch.Tensor:
+        """The Q a location is chosen on, from twin Q ``(..., 2)``: the twin minimum (SAC) or Q1 (TD3,
+        as HACMan). ``(...)``; export records the same choice as the manifest's ``q_reduction``."""
+        return q_twin.amin(-1) if self.is_sac else q_twin[..., 0]
+
     @torch.no_grad()
     def act(
         self,
@@ -510,7 +515,7 @@ class HybridAgent:
         deterministic = mode == "eval" and not nets.motion_policy.stochastic_eval
         motions, log_prob = nets.motion_policy.sample(f, noise, deterministic=deterministic)  # (B, N_obj, 3)
         q_twin = nets.critic(f, motions)  # (B, N_obj, 2)
-        q = q_twin.amin(-1) if self.is_sac else q_twin[..., 0]  # (B, N_obj)
+        q = self.decision_q(q_twin)  # (B, N_obj)
         q_select = q
         if normals is not None:
             pts = points.numpy()

@@ -25,8 +25,9 @@ class TwinQ(nn.Module):
     (optional) keeps the heads' inputs at unit scale while the encoder drifts, which stabilises TD
     learning (as in DroQ / REDQ-style critics).
 
-    With ``bins = K > 0`` each head is a classifier over K value bins spanning ``value_range`` (HL-Gauss,
-    Farebrother et al. 2024, "Stop Regressing"): the last layer emits K logits and ``Q`` is the
+    With ``bins = K > 0`` each head is a classifier over K value bins spanning ``value_range`` (the
+    agent passes ``AgentConfig.critic_value_min/max``; HL-Gauss, Farebrother et al. 2024, "Stop
+    Regressing"): the last layer emits K logits and ``Q`` is the
     softmax's mean bin value, so callers still read a scalar Q per head; :meth:`logits` feeds the
     cross-entropy loss of :func:`hl_gauss_targets`. A push that reaches the goal ends the episode
     (Q ≈ −0.03) while one that stops just short keeps paying (Q ≈ −0.5): a cliff in action space that
@@ -39,11 +40,13 @@ class TwinQ(nn.Module):
         hidden: int = 64,
         layer_norm: bool = False,
         bins: int = 0,
-        value_range: tuple[float, float] = (-4.0, 0.5),
+        value_range: tuple[float, float] | None = None,
     ) -> None:
         super().__init__()
         if bins == 1 or bins < 0:
             raise ValueError(f"`bins` must be 0 (scalar Q) or ≥ 2. Got {bins}.")
+        if bins and value_range is None:
+            raise ValueError("a categorical critic (bins > 0) needs its `value_range` (lo, hi)")
         self.hidden, self.layer_norm, self.bins = hidden, layer_norm, bins
         d_in = feature_dim + MOTION_DIM
 

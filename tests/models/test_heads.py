@@ -45,5 +45,7 @@ def test_categorical_q_is_the_mean_bin_value():
 def test_bins_are_validated():
     with pytest.raises(ValueError, match="`bins` must be 0"):
         TwinQ(8, bins=1)
+    with pytest.raises(ValueError, match="needs its `value_range`"):
+        TwinQ(8, bins=4)
     with pytest.raises(ValueError, match="categorical critic"):
         TwinQ(8).logits(torch.zeros(1, 8), torch.zeros(1, 3))
