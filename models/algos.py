@@ -118,6 +118,9 @@ class AgentConfig:
     critic_bins: int = 0
     """K > 0: categorical Q heads over K value bins trained with the HL-Gauss cross-entropy
     (``heads.TwinQ``); 0: scalar Q heads and squared error (as HACMan and the paper)."""
+    critic_motion_dirs: int = 0
+    """k > 0: the Q heads' first layer also gets k bilinear terms ``u_j(f_i) · a`` (learned directions
+    from the point's features dotted with the motion, ``heads.TwinQ``); 0: ``[f_i, a]`` only."""
     critic_value_min: float = -4.0
     """Lowest bin edge of a categorical critic (Q is in metres of goal flow summed over primitives)."""
     critic_value_max: float = 0.5
@@ -237,6 +240,7 @@ class AgentConfig:
             f"`critic_bins` must be 0 or ≥ 2 with critic_value_min < critic_value_max. Got {self.critic_bins}, "
             f"[{self.critic_value_min}, {self.critic_value_max}].",
         )
+        check(self.critic_motion_dirs >= 0, f"`critic_motion_dirs` must be ≥ 0. Got {self.critic_motion_dirs}.")
         for name in ("feature_dim", "encoder_hidden", "encoder_global", "actor_hidden", "critic_hidden"):
             check(getattr(self, name) >= 1, f"`{name}` must be ≥ 1. Got {getattr(self, name)}.")
 
@@ -397,6 +401,7 @@ class HybridAgent:
                 config.critic_layer_norm,
                 bins=config.critic_bins,
                 value_range=(config.critic_value_min, config.critic_value_max),
+                motion_dirs=config.critic_motion_dirs,
             )
             self.motion_policy: MotionPolicy = make_motion_policy(
                 spec.motion,

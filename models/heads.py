@@ -32,6 +32,13 @@ class TwinQ(nn.Module):
     cross-entropy loss of :func:`hl_gauss_targets`. A push that reaches the goal ends the episode
     (Q ≈ −0.03) while one that stops just short keeps paying (Q ≈ −0.5): a cliff in action space that
     a squared-error fit blurs and a categorical fit can keep sharp.
+
+    With ``motion_dirs = k > 0`` the first layer also gets k bilinear terms ``z_j = u_j(f) · a``: each
+    head maps the point's features to k directions ``u_j(f) = U_j f + c_j`` (3-vectors, no
+    nonlinearity) and dots them with the motion. What a push does is mostly such dot products (the
+    push along the contact normal, along the direction to the centroid, along the goal flow, its
+    torque about the centroid); a ReLU MLP on ``[f, a]`` can only approximate a product of its
+    inputs piecewise, with many units.
     """
 
     def __init__(
@@ -41,13 +48,17 @@ class TwinQ(nn.Module):
         layer_norm: bool = False,
         bins: int = 0,
         value_range: tuple[float, float] | None = None,
+        motion_dirs: int = 0,
     ) -> None:
         super().__init__()
+        if motion_dirs < 0:
+            raise ValueError(f"`motion_dirs` must be ≥ 0. Got {motion_dirs}.")
         if bins == 1 or bins < 0:
             raise ValueError(f"`bins` must be 0 (scalar Q) or ≥ 2. Got {bins}.")
         if bins and value_range is None:
             raise ValueError("a categorical critic (bins > 0) needs its `value_range` (lo, hi)")
         self.hidden, self.layer_norm, self.bins = hidden, layer_norm, bins
+        self.feature_dim, self.motion_dirs = feature_dim, motion_dirs
         d_in = feature_dim + MOTION_DIM
 
         def uniform(*shape: int, fan_in: int) -> nn.Parameter:  # nn.Linear's default init
@@ -55,6 +66,10 @@ class TwinQ(nn.Module):
             return nn.Parameter(torch.empty(*shape).uniform_(-bound, bound))
 
         self.w1, self.b1 = uniform(2, d_in, hidden, fan_in=d_in), uniform(2, 1, hidden, fan_in=d_in)
+        if motion_dirs:
+            k3 = motion_dirs * MOTION_DIM
+            self.wu, self.bu = uniform(2, feature_dim, k3, fan_in=feature_dim), uniform(2, 1, k3, fan_in=feature_dim)
+            self.wz = uniform(2, motion_dirs, hidden, fan_in=d_in + motion_dirs)
         self.ln_weight = nn.Parameter(torch.ones(2, 1, hidden))
         self.ln_bias = nn.Parameter(torch.zeros(2, 1, hidden))
         self.w2, self.b2 = uniform(2, hidden, hidden, fan_in=hidden), uniform(2, 1, hidden, fan_in=hidden)
@@ -69,7 +84,13 @@ class TwinQ(nn.Module):
 
     def _hidden(self, x: torch.Tensor, n: int) -> torch.Tensor:
         """``x (R, D+3)`` → last hidden layer ``(n, R, H)`` of the first ``n`` heads."""
-        h = torch.baddbmm(self.b1[:n], x.expand(n, *x.shape), self.w1[:n])  # (n, R, H)
+        xn = x.expand(n, *x.shape)  # (n, R, D+3)
+        h = torch.baddbmm(self.b1[:n], xn, self.w1[:n])  # (n, R, H)
+        if self.motion_dirs:
+            u = torch.baddbmm(self.bu[:n], xn[..., : self.feature_dim], self.wu[:n])  # (n, R, 3k)
+            u = u.unflatten(-1, (self.motion_dirs, MOTION_DIM))  # (n, R, k, 3) directions u_j(f)
+            z = (u * xn[..., self.feature_dim :, None].transpose(-1, -2)).sum(-1)  # (n, R, k): u_j · a
+            h = torch.baddbmm(h, z, self.wz[:n])  # (n, R, H)
         if self.layer_norm:
             h = torch.addcmul(self.ln_bias[:n], F.layer_norm(h, (self.hidden,)), self.ln_weight[:n])
         return torch.relu(torch.baddbmm(self.b2[:n], torch.relu(h), self.w2[:n]))  # (n, R, H)

@@ -41,9 +41,11 @@ def test_parity_and_manifest(exported):
     assert json.loads(props["algo"]) == cfg.algo
 
 
-def test_categorical_critic_exports_with_parity(tmp_path):
-    """The HL-Gauss critic's softmax-over-bins mean exports with the same interface and tolerance."""
-    cfg = TrainConfig(algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent={**TINY, "critic_bins": 16})
+@pytest.mark.parametrize("critic_options", [{"critic_bins": 16}, {"critic_bins": 16, "critic_motion_dirs": 4}])
+def test_categorical_critic_exports_with_parity(tmp_path, critic_options):
+    """The HL-Gauss critic's softmax-over-bins mean (and the bilinear motion directions) export with the
+    same interface and tolerance."""
+    cfg = TrainConfig(algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent={**TINY, **critic_options})
     agent = HybridAgent(agent_config(cfg))
     report = export_agent(agent, cfg, "pytest", tmp_path / "model", n_checks=32)
     assert report["max_abs_error_motion"] <= 1e-4 and report["max_abs_error_q"] <= 1e-4

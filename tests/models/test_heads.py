@@ -49,3 +49,23 @@ def test_bins_are_validated():
         TwinQ(8, bins=4)
     with pytest.raises(ValueError, match="categorical critic"):
         TwinQ(8).logits(torch.zeros(1, 8), torch.zeros(1, 3))
+
+
+def test_motion_directions_are_bilinear_in_the_motion():
+    """With ``motion_dirs`` the first layer sees ``u_j(f) · a``: zero motion adds nothing, the term
+    is linear in the motion, and its directions are trained by the critic's gradient."""
+    torch.manual_seed(0)
+    critic = TwinQ(8, hidden=16, motion_dirs=4)
+    plain = TwinQ(8, hidden=16)
+    plain.load_state_dict({k: v for k, v in critic.state_dict().items() if k not in ("wu", "bu", "wz")})
+    f = torch.randn(3, 5, 8)
+    zero = torch.zeros(3, 5, 3)
+    torch.testing.assert_close(critic(f, zero), plain(f, zero))  # u · 0 = 0
+    a = torch.rand(3, 5, 3) * 2 - 1
+    x = torch.cat([f, a], -1).reshape(-1, 11)
+    h_a = critic._hidden(x, 2)
+    assert not torch.allclose(h_a, plain._hidden(x, 2))  # the bilinear term changes the heads
+    critic(f, a).sum().backward()
+    assert critic.wu.grad.abs().sum() > 0 and critic.wz.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="`motion_dirs` must be ≥ 0"):
+        TwinQ(8, motion_dirs=-1)
