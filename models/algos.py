@@ -240,7 +240,9 @@ class AgentConfig:
             f"`critic_bins` must be 0 or ≥ 2 with critic_value_min < critic_value_max. Got {self.critic_bins}, "
             f"[{self.critic_value_min}, {self.critic_value_max}].",
         )
-        check(self.critic_motion_dirs >= 0, f"`critic_motion_dirs` must be ≥ 0. Got {self.critic_motion_dirs}.")
+        check(
+            self.critic_motion_dirs >= 0, f"`critic_motion_dirs` must be ≥ 0. Got {self.critic_motion_dirs}."
+        )
         for name in ("feature_dim", "encoder_hidden", "encoder_global", "actor_hidden", "critic_hidden"):
             check(getattr(self, name) >= 1, f"`{name}` must be ≥ 1. Got {getattr(self, name)}.")
 

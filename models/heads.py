@@ -68,7 +68,10 @@ class TwinQ(nn.Module):
         self.w1, self.b1 = uniform(2, d_in, hidden, fan_in=d_in), uniform(2, 1, hidden, fan_in=d_in)
         if motion_dirs:
             k3 = motion_dirs * MOTION_DIM
-            self.wu, self.bu = uniform(2, feature_dim, k3, fan_in=feature_dim), uniform(2, 1, k3, fan_in=feature_dim)
+            self.wu, self.bu = (
+                uniform(2, feature_dim, k3, fan_in=feature_dim),
+                uniform(2, 1, k3, fan_in=feature_dim),
+            )
             self.wz = uniform(2, motion_dirs, hidden, fan_in=d_in + motion_dirs)
         self.ln_weight = nn.Parameter(torch.ones(2, 1, hidden))
         self.ln_bias = nn.Parameter(torch.zeros(2, 1, hidden))

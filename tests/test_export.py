@@ -41,7 +41,9 @@ def test_parity_and_manifest(exported):
     assert json.loads(props["algo"]) == cfg.algo
 
 
-@pytest.mark.parametrize("critic_options", [{"critic_bins": 16}, {"critic_bins": 16, "critic_motion_dirs": 4}])
+@pytest.mark.parametrize(
+    "critic_options", [{"critic_bins": 16}, {"critic_bins": 16, "critic_motion_dirs": 4}]
+)
 def test_categorical_critic_exports_with_parity(tmp_path, critic_options):
     """The HL-Gauss critic's softmax-over-bins mean (and the bilinear motion directions) export with the
     same interface and tolerance."""
