@@ -27,6 +27,7 @@ from rich.table import Table
 
 from hydo_cli.errors import HydoError
 from hydo_cli.options import (
+    ChainNoise,
     ClutterOpt,
     EvalWeights,
     Goals,
@@ -437,6 +438,15 @@ def evaluate(
             "its config says otherwise). Exported models hold the weights they were exported with.",
         ),
     ] = None,
+    chain_noise: Annotated[
+        ChainNoise | None,
+        typer.Option(
+            "--chain-noise",
+            help="How a run's ddpm / cm chain acts: sample (its noise is the policy, as in the paper) or "
+            "zero (the noiseless chain, deterministic). Default: the run's config (sample unless it says "
+            "otherwise). Exported models act as they were exported.",
+        ),
+    ] = None,
 ) -> None:
     from hydo_cli.policies import load_policy
     from hydo_cli.rollout import run_episodes
@@ -469,7 +479,10 @@ def evaluate(
 
     # 2. load every target first: a bad one fails in a second, not after the others ran
     w = None if weights is None else weights.value
-    loaded = [load_policy(t, seed=seed, feasible_only=feasible_only, weights=w) for t in targets]
+    cn = None if chain_noise is None else chain_noise.value
+    loaded = [
+        load_policy(t, seed=seed, feasible_only=feasible_only, weights=w, chain_noise=cn) for t in targets
+    ]
 
     # 3. run: same episodes for every run; envs per split and point counts
     frames: list = []
@@ -549,6 +562,7 @@ def evaluate(
         "compare": compare,
         "feasible_only": feasible_only,
         "weights": w,
+        "chain_noise": cn,
         "task": None
         if task_def is None
         else {

@@ -192,7 +192,7 @@ def export_agent(agent, cfg, command: str, out: Path, seed: int = 0, n_checks: i
                 k: v for k, v in schedule.items() if k.startswith(("ddpm_", "cm_", "final_std", "chain_"))
             },
             "q_reduction": "min" if agent.is_sac else "q1",
-            "stochastic": bool(agent.motion_policy.stochastic_eval),
+            "stochastic": bool(agent.eval_stochastic),
             "goals": cfg.goals,
             "objects": cfg.objects,
             "training_command": command,

@@ -26,6 +26,14 @@ class EvalWeights(str, Enum):
     online = "online"
 
 
+class ChainNoise(str, Enum):
+    """How a trained chain policy samples in evaluation (``models.algos.EVAL_CHAIN_NOISE``; a test
+    keeps the two lists equal)."""
+
+    sample = "sample"
+    zero = "zero"
+
+
 class TaskName(str, Enum):
     """Behaviour-diversity tasks (``sim.tasks.TASKS``; a test keeps the two lists equal)."""
 

@@ -22,13 +22,18 @@ class LoadedPolicy:
 
 
 def load_policy(
-    target: str, seed: int = 0, feasible_only: bool = True, weights: str | None = None
+    target: str,
+    seed: int = 0,
+    feasible_only: bool = True,
+    weights: str | None = None,
+    chain_noise: str | None = None,
 ) -> LoadedPolicy:
     """A baseline name, a run directory (its latest checkpoint) or a checkpoint file.
 
     ``feasible_only``: learned policies choose among points whose push can run
     (``sim.primitive.feasible_points``). ``weights``: "average" | "online" overrides a run's or
-    checkpoint's ``AgentConfig.eval_weights`` (None keeps it; baselines and exported models ignore it)."""
+    checkpoint's ``AgentConfig.eval_weights``, ``chain_noise``: "sample" | "zero" its
+    ``eval_chain_noise`` (None keeps them; baselines and exported models ignore both)."""
     if target in BASELINES:
         return LoadedPolicy(baseline_policy(target, seed), None, None, target == "random", target, target)
     path = Path(target)
@@ -50,7 +55,7 @@ def load_policy(
         raise HydoError(f"eval target '{target}' is one graph of a model: give its folder ({path.parent})")
     from hydo_cli.train import load_agent_policy
 
-    return load_agent_policy(path, seed, feasible_only, weights)
+    return load_agent_policy(path, seed, feasible_only, weights, chain_noise)
 
 
 def load_onnx_policy(folder: Path, seed: int, feasible_only: bool = True) -> LoadedPolicy:

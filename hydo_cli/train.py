@@ -279,8 +279,14 @@ def train(
     trainer.run()
 
 
-def load_agent_policy(path: Path, seed: int, feasible_only: bool = True, weights: str | None = None):
+def load_agent_policy(
+    path: Path,
+    seed: int,
+    feasible_only: bool = True,
+    weights: str | None = None,
+    chain_noise: str | None = None,
+):
     """A run directory or checkpoint → ``hydo_cli.policies.LoadedPolicy`` (eval-mode agent)."""
     from hydo_cli.trainer import load_policy_from_checkpoint
 
-    return load_policy_from_checkpoint(path, seed, feasible_only, weights)
+    return load_policy_from_checkpoint(path, seed, feasible_only, weights, chain_noise)

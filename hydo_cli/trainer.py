@@ -352,14 +352,19 @@ def load_agent(path: Path) -> tuple[HybridAgent, TrainConfig, str]:
 
 
 def load_policy_from_checkpoint(
-    path: Path, seed: int, feasible_only: bool = True, weights: str | None = None
+    path: Path,
+    seed: int,
+    feasible_only: bool = True,
+    weights: str | None = None,
+    chain_noise: str | None = None,
 ) -> LoadedPolicy:
     """A run directory or checkpoint file → eval-mode batched policy (``weights`` overrides the
-    agent's ``eval_weights``: "average" | "online")."""
+    agent's ``eval_weights``: "average" | "online"; ``chain_noise`` its ``eval_chain_noise``: "sample" |
+    "zero")."""
     agent, cfg, _ = load_agent(path)
     if weights is not None:
         agent.config = dataclasses.replace(agent.config, eval_weights=weights)
+    if chain_noise is not None:
+        agent.config = dataclasses.replace(agent.config, eval_chain_noise=chain_noise)
     policy = agent_policy(agent, "eval", torch.Generator().manual_seed(seed), feasible_only)
-    return LoadedPolicy(
-        policy, cfg.n_obj, cfg.n_bg, agent.motion_policy.stochastic_eval, f"{cfg.algo} ({path})", cfg.algo
-    )
+    return LoadedPolicy(policy, cfg.n_obj, cfg.n_bg, agent.eval_stochastic, f"{cfg.algo} ({path})", cfg.algo)

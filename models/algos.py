@@ -79,6 +79,7 @@ ALGOS: dict[str, AlgoSpec] = {
 MODES = ("explore", "eval")
 HL_GAUSS_SIGMA_BINS = 0.75  # HL-Gauss σ in bin widths (Farebrother et al. 2024's recommended ratio)
 EVAL_WEIGHTS = ("average", "online")
+EVAL_CHAIN_NOISE = ("sample", "zero")
 AGENT_FORMAT = "hydo-agent/1"
 
 
@@ -136,6 +137,11 @@ class AgentConfig:
     proposes), or "online". The average ranks better: on the 60-min planar runs (3 seeds each, the
     same 300 episodes) it lifted every run, hydo-cm from 57.6 % to 61.4 % and hacman from 55.3 % to
     64.3 % (``hydo eval RUNS --episodes 300 --seed 1 --weights online|average``)."""
+    eval_chain_noise: str = "sample"
+    """How the ddpm / cm chains act in ``mode="eval"`` (evaluation, export, deploy): "sample" (the
+    chain's standard-normal noise is the policy, as in the paper; behaviour diversity needs it) or
+    "zero" (the noiseless chain: one deterministic motion per point). Exploration always samples;
+    tanh and gauss policies are deterministic in eval either way."""
 
     # motion chains (ddpm / cm)
     denoise_steps: int = 5
@@ -215,6 +221,10 @@ class AgentConfig:
         check(
             self.eval_weights in EVAL_WEIGHTS,
             f"`eval_weights` must be one of {list(EVAL_WEIGHTS)}. Got {self.eval_weights}.",
+        )
+        check(
+            self.eval_chain_noise in EVAL_CHAIN_NOISE,
+            f"`eval_chain_noise` must be one of {list(EVAL_CHAIN_NOISE)}. Got {self.eval_chain_noise}.",
         )
         check(
             self.chain_entropy in CHAIN_ENTROPY,
@@ -497,6 +507,12 @@ class HybridAgent:
             return ActingNetworks(self.encoder_target, motion, self.critic_target)
         return ActingNetworks(self.encoder, self.motion_policy, self.critic)
 
+    @property
+    def eval_stochastic(self) -> bool:
+        """Whether ``act(mode="eval")`` (and so an export of this agent) samples its motions: the
+        chains with ``eval_chain_noise == "sample"``; never tanh / gauss."""
+        return self.motion_policy.stochastic_eval and self.config.eval_chain_noise == "sample"
+
     def decision_q(self, q_twin: torch.Tensor) -> torch.Tensor:
         """The Q a location is chosen on, from twin Q ``(..., 2)``: the twin minimum (SAC) or Q1 (TD3,
         as HACMan). ``(...)``; export records the same choice as the manifest's ``q_reduction``."""
@@ -521,8 +537,9 @@ class HybridAgent:
           motion sampled from the policy (TD3: plus Gaussian noise ``explore_motion_std``).
         * ``"eval"``: location = argmax of Q over object points; motion from the policy without
           exploration noise. Deterministic for tanh and gauss (``tanh(mean)``); **stochastic for ddpm
-          and cm**: the chain's noise is the policy (as in the paper's real-robot runs); pass a seeded
-          ``generator`` to reproduce it. Acts with ``acting_networks("eval")`` (by default the
+          and cm** with ``eval_chain_noise="sample"``: the chain's noise is the policy (as in the
+          paper's real-robot runs; pass a seeded ``generator`` to reproduce it); with "zero" the chain
+          runs on zero noise. Acts with ``acting_networks("eval")`` (by default the
           Polyak-averaged encoder and critic).
 
         Q at each point is scored on the motion proposed at that point (TD3: Q1, as HACMan; SAC: the
@@ -539,7 +556,7 @@ class HybridAgent:
         f = nets.encoder(points, features)  # (B, N_obj, D)
         b, n = f.shape[:2]
         noise = torch.randn(nets.motion_policy.noise_shape(b, n), generator=generator)
-        deterministic = mode == "eval" and not nets.motion_policy.stochastic_eval
+        deterministic = mode == "eval" and not self.eval_stochastic
         motions, log_prob = nets.motion_policy.sample(f, noise, deterministic=deterministic)  # (B, N_obj, 3)
         q_twin = nets.critic(f, motions)  # (B, N_obj, 2)
         q = self.decision_q(q_twin)  # (B, N_obj)

@@ -41,14 +41,15 @@ class EncoderExport(nn.Module):
 class ActorExport(nn.Module):
     """``(point_features (B, N_obj, D), noise (B, N_obj, S, 3))`` → motion per point ``(B, N_obj, 3)`` in [-1, 1].
 
-    ``deterministic`` follows ``act(mode="eval")``: True for tanh / gauss (the noise is then unused),
-    False for ddpm / cm, whose chain noise is the policy.
+    ``deterministic`` follows ``act(mode="eval")``: True for tanh / gauss and for chains exported with
+    ``eval_chain_noise="zero"`` (the noise is then unused), False for ddpm / cm whose chain noise is
+    the policy.
     """
 
     def __init__(self, agent: HybridAgent) -> None:
         super().__init__()
         self.motion_policy = copy.deepcopy(agent.acting_networks("eval").motion_policy).eval()
-        self.deterministic = not self.motion_policy.stochastic_eval
+        self.deterministic = not agent.eval_stochastic
         self.n_obj = agent.config.n_obj
 
     def noise_shape(self, batch: int) -> tuple[int, int, int, int]:

@@ -80,6 +80,13 @@ def test_train_resume_eval_export(tmp_path):
     r = hydo("eval", str(run), "--objects", "cube", "--episodes", "2", "--json", str(out))
     assert r.returncode == 0, r.stderr[-2000:]
     assert 0.0 <= json.loads(out.read_text())["runs"][0]["success_rate"] <= 1.0
+    assert json.loads(out.read_text())["runs"][0]["stochastic"] is True  # the cm chain samples
+    r = hydo(
+        "eval", str(run), "--objects", "cube", "--episodes", "1", "--chain-noise", "zero", "--json", str(out)
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads(out.read_text())["runs"][0]["stochastic"] is False
+    assert json.loads(out.read_text())["chain_noise"] == "zero"
     r = hydo("export", str(run), "--out", str(tmp_path / "model"))
     assert r.returncode == 0, r.stderr[-2000:]
     assert (tmp_path / "model" / "manifest.json").is_file()

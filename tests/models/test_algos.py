@@ -8,6 +8,7 @@ from learner_util import SMALL, random_obs
 
 from models.algos import (
     ALGOS,
+    EVAL_CHAIN_NOISE,
     EVAL_WEIGHTS,
     AgentConfig,
     HybridAgent,
@@ -210,9 +211,32 @@ def test_eval_acts_with_the_averaged_weights(algo):
 
 
 def test_eval_weights_option_matches_the_agent():
-    from hydo_cli.options import EvalWeights
+    from hydo_cli.options import ChainNoise, EvalWeights
 
     assert [w.value for w in EvalWeights] == list(EVAL_WEIGHTS)
+    assert [c.value for c in ChainNoise] == list(EVAL_CHAIN_NOISE)
+
+
+def test_zero_chain_noise_makes_eval_deterministic_and_exports_so():
+    """eval_chain_noise="zero": eval motions no longer depend on the generator, equal the chain run on
+    zero noise, and the exported actor ignores its noise input; exploration still samples."""
+    agent = HybridAgent(AgentConfig(algo="hydo-cm", eval_chain_noise="zero", **SMALL))
+    assert not agent.eval_stochastic
+    points, features = random_obs(2, 16, 16, seed=2)
+    runs = [agent.act(points, features, "eval", torch.Generator().manual_seed(s)) for s in (0, 1)]
+    torch.testing.assert_close(runs[0][2]["motions"], runs[1][2]["motions"])
+    f = agent.encoder_target(points, features)
+    zero = torch.zeros(agent.motion_policy.noise_shape(2, 16))
+    torch.testing.assert_close(runs[0][2]["motions"], agent.motion_policy.sample(f, zero)[0])
+    explore = [agent.act(points, features, "explore", torch.Generator().manual_seed(s)) for s in (0, 1)]
+    assert not torch.allclose(explore[0][2]["motions"], explore[1][2]["motions"])
+    actor = export_modules(agent)["actor"]
+    noise = torch.randn(actor.noise_shape(2))
+    with torch.no_grad():
+        torch.testing.assert_close(actor(f, noise), actor(f, zero))
+    assert HybridAgent(AgentConfig(algo="hydo-cm", **SMALL)).eval_stochastic  # the default samples
+    with pytest.raises(ValueError, match=r"`eval_chain_noise` must be one of \['sample', 'zero'\]"):
+        AgentConfig(eval_chain_noise="mean")
 
 
 @pytest.mark.parametrize("algo", ["hacman", "hydo-gauss", "hydo-cm"])
