@@ -37,7 +37,7 @@ from learner import parse_overrides  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from models.algos import AgentConfig, HybridAgent, push_effect  # noqa: E402
+from models.algos import AgentConfig, HybridAgent  # noqa: E402
 from models.perf import configure_cpu  # noqa: E402
 from models.replay import ReplayBuffer  # noqa: E402
 from sim.atomic import atomic_write_text  # noqa: E402
@@ -73,21 +73,14 @@ def main(argv: list[str] | None = None) -> int:
     perm = torch.randperm(n, generator=torch.Generator().manual_seed(args.seed))
     test, train = perm[: args.test], perm[args.test :]
 
-    def predict(idx: torch.Tensor, aux_loss: bool = False):
-        """Predicted d' (metres) for transitions ``idx (M,)``; with ``aux_loss`` also the critic's
-        auxiliary loss (``AgentConfig.critic_aux_weight``, as in training) on them."""
+    def predict(idx: torch.Tensor) -> torch.Tensor:
+        """Predicted d' (metres) for transitions ``idx (M,)``."""
         points = torch.from_numpy(buf.points[idx.numpy()].astype(np.float32))
         features = torch.from_numpy(buf.features[idx.numpy()].astype(np.float32))
         f = encoder(points, features)  # (M, N_obj, D)
         index = torch.from_numpy(buf.index[idx.numpy()].astype(np.int64))
         motion = torch.from_numpy(buf.motion[idx.numpy()])
-        f_taken = f[torch.arange(len(idx)), index]  # (M, D)
-        if not aux_loss:
-            return critic.q1(f_taken, motion)  # (M,)
-        q, aux = critic.with_aux(f_taken, motion)  # (M, 2), (M, 2, 3)
-        next_features = torch.from_numpy(buf.next_features[idx.numpy()].astype(np.float32))
-        effect = push_effect(features, next_features, buf.n_obj) / cfg.length_scale  # (M, 3)
-        return q[:, 0], (aux[:, 0] - effect).pow(2).sum(-1).mean()
+        return critic.q1(f[torch.arange(len(idx)), index], motion)  # (M,)
 
     def evaluate(idx: torch.Tensor) -> dict:
         with torch.no_grad():
@@ -107,11 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     curve, t0 = [], time.perf_counter()
     for step in range(1, args.steps + 1):
         idx = train[torch.randint(len(train), (args.batch_size,), generator=gen)]
-        if cfg.critic_aux_weight > 0:
-            pred, aux_loss = predict(idx, aux_loss=True)
-            loss = (pred - target[idx]).pow(2).mean() + cfg.critic_aux_weight * aux_loss
-        else:
-            loss = (predict(idx) - target[idx]).pow(2).mean()
+        loss = (predict(idx) - target[idx]).pow(2).mean()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

@@ -122,11 +122,6 @@ class AgentConfig:
     critic_motion_dirs: int = 0
     """k > 0: the Q heads' first layer also gets k bilinear terms ``u_j(f_i) · a`` (learned directions
     from the point's features dotted with the motion, ``heads.TwinQ``); 0: ``[f_i, a]`` only."""
-    critic_aux_weight: float = 0.0
-    """> 0: weight of an auxiliary loss on the critic: each Q head also predicts, from its last hidden
-    layer, how the push moved the object (the change of the mean goal flow from s to s', in units of
-    ``length_scale``). Free labels from every transition that make the encoder and the Q heads learn
-    what a push does, which TD targets alone teach slowly (``bench/outcome.py``)."""
     critic_value_min: float = -4.0
     """Lowest bin edge of a categorical critic (Q is in metres of goal flow summed over primitives)."""
     critic_value_max: float = 0.5
@@ -256,10 +251,6 @@ class AgentConfig:
             f"[{self.critic_value_min}, {self.critic_value_max}].",
         )
         check(
-            self.critic_aux_weight >= 0 and (self.critic_aux_weight == 0 or self.critic_bins == 0),
-            f"`critic_aux_weight` must be ≥ 0, and 0 with a categorical critic. Got {self.critic_aux_weight}.",
-        )
-        check(
             self.critic_motion_dirs >= 0, f"`critic_motion_dirs` must be ≥ 0. Got {self.critic_motion_dirs}."
         )
         for name in ("feature_dim", "encoder_hidden", "encoder_global", "actor_hidden", "critic_hidden"):
@@ -384,16 +375,6 @@ def actor_surrogate_weights(
     return SurrogateWeights(coef=(j - j_bar) / alpha_loc - 1.0, loss=j_bar.squeeze(-1))
 
 
-def push_effect(features: torch.Tensor, next_features: torch.Tensor, n_obj: int) -> torch.Tensor:
-    """How a push moved the object, from observations alone: ``(B, 3)`` metres.
-
-    The mean goal flow over object points is ``goal centroid − observed centroid`` (per point
-    ``goal(p) − p``), so its decrease from s to s' is the displacement of the object's centroid
-    (exact for translations; for turns, of the points' centroid). ``features``, ``next_features``
-    ``(B, N, 4)`` as in :class:`~models.replay.ReplayBatch`."""
-    return features[:, :n_obj, 1:].mean(1) - next_features[:, :n_obj, 1:].mean(1)
-
-
 class ActingNetworks(NamedTuple):
     """The three networks behind a decision (and behind the ONNX interface)."""
 
@@ -433,7 +414,6 @@ class HybridAgent:
                 bins=config.critic_bins,
                 value_range=(config.critic_value_min, config.critic_value_max),
                 motion_dirs=config.critic_motion_dirs,
-                aux_dim=MOTION_DIM if config.critic_aux_weight > 0 else 0,
             )
             self.motion_policy: MotionPolicy = make_motion_policy(
                 spec.motion,
@@ -669,13 +649,6 @@ class HybridAgent:
             critic_loss = -(probs[:, None] * torch.log_softmax(logits, -1)).sum(-1).mean(0).sum()
             with torch.no_grad():
                 q_taken = torch.softmax(logits, -1) @ self.critic.bin_centres  # (B, 2)
-        elif cfg.critic_aux_weight > 0:  # plus the auxiliary prediction of the push's effect
-            q_taken, aux = self.critic.with_aux(f_taken, batch.motion)  # (B, 2), (B, 2, 3)
-            effect = push_effect(batch.features, batch.next_features, n_obj) / cfg.length_scale  # (B, 3)
-            aux_loss = (aux - effect[:, None]).pow(2).sum(-1).mean()
-            critic_loss = F.mse_loss(q_taken[:, 0], target_q) + F.mse_loss(q_taken[:, 1], target_q)
-            critic_loss = critic_loss + cfg.critic_aux_weight * aux_loss
-            out["aux_loss"] = aux_loss.item()
         else:
             q_taken = self.critic(f_taken, batch.motion)  # (B, 2)
             critic_loss = F.mse_loss(q_taken[:, 0], target_q) + F.mse_loss(q_taken[:, 1], target_q)

@@ -39,10 +39,6 @@ class TwinQ(nn.Module):
     push along the contact normal, along the direction to the centroid, along the goal flow, its
     torque about the centroid); a ReLU MLP on ``[f, a]`` can only approximate a product of its
     inputs piecewise, with many units.
-
-    With ``aux_dim = m > 0`` each head also has a linear read-out of its last hidden layer to m values
-    (:meth:`with_aux`): an auxiliary prediction of what the push does (``AgentConfig.critic_aux_weight``),
-    so the layer Q is read from must encode the push's effect, not only its value.
     """
 
     def __init__(
@@ -53,11 +49,10 @@ class TwinQ(nn.Module):
         bins: int = 0,
         value_range: tuple[float, float] | None = None,
         motion_dirs: int = 0,
-        aux_dim: int = 0,
     ) -> None:
         super().__init__()
-        if motion_dirs < 0 or aux_dim < 0:
-            raise ValueError(f"`motion_dirs` and `aux_dim` must be ≥ 0. Got {motion_dirs}, {aux_dim}.")
+        if motion_dirs < 0:
+            raise ValueError(f"`motion_dirs` must be ≥ 0. Got {motion_dirs}.")
         if bins == 1 or bins < 0:
             raise ValueError(f"`bins` must be 0 (scalar Q) or ≥ 2. Got {bins}.")
         if bins and value_range is None:
@@ -78,12 +73,6 @@ class TwinQ(nn.Module):
                 uniform(2, 1, k3, fan_in=feature_dim),
             )
             self.wz = uniform(2, motion_dirs, hidden, fan_in=d_in + motion_dirs)
-        self.aux_dim = aux_dim
-        if aux_dim:
-            self.w_aux, self.b_aux = (
-                uniform(2, hidden, aux_dim, fan_in=hidden),
-                uniform(2, 1, aux_dim, fan_in=hidden),
-            )
         self.ln_weight = nn.Parameter(torch.ones(2, 1, hidden))
         self.ln_bias = nn.Parameter(torch.zeros(2, 1, hidden))
         self.w2, self.b2 = uniform(2, hidden, hidden, fan_in=hidden), uniform(2, 1, hidden, fan_in=hidden)
@@ -109,9 +98,9 @@ class TwinQ(nn.Module):
             h = torch.addcmul(self.ln_bias[:n], F.layer_norm(h, (self.hidden,)), self.ln_weight[:n])
         return torch.relu(torch.baddbmm(self.b2[:n], torch.relu(h), self.w2[:n]))  # (n, R, H)
 
-    def _heads(self, x: torch.Tensor, n: int, h: torch.Tensor | None = None) -> torch.Tensor:
-        """``x (R, D+3)`` → Q ``(n, R)`` for the first ``n`` heads (``h``: their hidden layer, if known)."""
-        h = self._hidden(x, n) if h is None else h
+    def _heads(self, x: torch.Tensor, n: int) -> torch.Tensor:
+        """``x (R, D+3)`` → Q ``(n, R)`` for the first ``n`` heads."""
+        h = self._hidden(x, n)
         if self.bins:
             probs = torch.softmax(torch.baddbmm(self.b3[:n], h, self.w3[:n]), dim=-1)  # (n, R, K)
             return probs @ self.bin_centres  # (n, R)
@@ -122,16 +111,6 @@ class TwinQ(nn.Module):
         x = torch.cat([f, a], dim=-1)
         q = self._heads(x.reshape(-1, x.shape[-1]), 2)  # (2, R)
         return q.t().reshape(*f.shape[:-1], 2)
-
-    def with_aux(self, f: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``f (B, D)``, ``a (B, 3)`` → ``(q (B, 2), aux (B, 2, m))``: Q and the auxiliary prediction of
-        both heads from one pass (only with ``aux_dim > 0``)."""
-        if not self.aux_dim:
-            raise ValueError("with_aux() needs a critic with aux_dim > 0")
-        x = torch.cat([f, a], dim=-1)
-        h = self._hidden(x, 2)  # (2, B, H)
-        aux = torch.baddbmm(self.b_aux, h, self.w_aux)  # (2, B, m)
-        return self._heads(x, 2, h).t(), aux.transpose(0, 1)
 
     def q1(self, f: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """First head only ``(...)``: TD3's actor loss reads Q1 (half the cost of both)."""

@@ -14,7 +14,6 @@ from models.algos import (
     HybridAgent,
     actor_surrogate_weights,
     frozen,
-    push_effect,
 )
 from models.checkpoint import load_checkpoint, save_checkpoint
 from models.export import export_modules
@@ -254,30 +253,3 @@ def test_export_modules_reproduce_eval_act(algo):
     q_sel = q.amin(-1) if agent.is_sac else q[..., 0]
     assert torch.equal(q_sel.argmax(-1), index)
     assert torch.allclose(motions[torch.arange(3), index], motion)
-
-
-def test_push_effect_is_the_object_displacement():
-    """A translated object's goal flow shrinks by the translation at every point: push_effect reads it."""
-    points, features = random_obs(2, 16, 16, seed=4)
-    shift = torch.tensor([[0.03, -0.01, 0.0], [-0.02, 0.04, 0.0]])  # (B, 3) metres
-    next_features = features.clone()
-    next_features[:, :16, 1:] -= shift[:, None]
-    torch.testing.assert_close(push_effect(features, next_features, 16), shift)
-
-
-def test_auxiliary_push_effect_loss_trains_encoder_and_critic():
-    """critic_aux_weight > 0: the update reports the auxiliary loss, its gradient reaches the encoder
-    and repeated updates on one batch fit the displacement; a categorical critic refuses it."""
-    cfg = AgentConfig(algo="hydo-cm", critic_aux_weight=1.0, **SMALL)
-    agent = HybridAgent(cfg)
-    batch = make_batch(32, cfg.n_obj, cfg.n_bg, seed=5)
-    first = agent.update(batch)["aux_loss"]
-    for _ in range(150):
-        last = agent.update(batch)["aux_loss"]
-    assert last < 0.5 * first
-    plain = HybridAgent(AgentConfig(algo="hydo-cm", **SMALL))
-    assert sum(p.numel() for p in agent.critic.parameters()) > sum(
-        p.numel() for p in plain.critic.parameters()
-    )
-    with pytest.raises(ValueError, match="`critic_aux_weight` must be ≥ 0, and 0 with a categorical critic"):
-        AgentConfig(critic_aux_weight=1.0, critic_bins=16)

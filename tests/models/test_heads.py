@@ -67,5 +67,5 @@ def test_motion_directions_are_bilinear_in_the_motion():
     assert not torch.allclose(h_a, plain._hidden(x, 2))  # the bilinear term changes the heads
     critic(f, a).sum().backward()
     assert critic.wu.grad.abs().sum() > 0 and critic.wz.grad.abs().sum() > 0
-    with pytest.raises(ValueError, match="`motion_dirs` and `aux_dim` must be ≥ 0"):
+    with pytest.raises(ValueError, match="`motion_dirs` must be ≥ 0"):
         TwinQ(8, motion_dirs=-1)
