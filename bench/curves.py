@@ -3,9 +3,11 @@
     python bench/curves.py runs/hydo-cm-* runs/hacman-* [--json curves.json]
 
 Reads each run's ``eval.jsonl`` (written by ``hydo train`` at every evaluation) and ``config.json``,
-groups runs by (algo, goals, objects), and prints per group the mean (min-max over seeds) success
-rate at each evaluation step, with the wall-clock minutes at which it was measured, and the success
-rate vs wall-clock minutes (each seed's latest evaluation at or before every ``--minute-step``).
+groups runs by (algo, goals, objects, learner overrides), and prints per group the mean (min-max over
+seeds) success rate at each evaluation step, with the wall-clock minutes at which it was measured, the
+success rate vs wall-clock minutes (each seed's latest evaluation at or before every
+``--minute-step``) and the plateau: each seed's mean success over its evaluations from
+``--plateau-from`` minutes on (many evaluations of 50 episodes average out much of their noise).
 """
 
 from __future__ import annotations
@@ -60,6 +62,9 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--minute-step", type=float, default=10.0, help="spacing of the vs-minutes table")
+    ap.add_argument(
+        "--plateau-from", type=float, default=8.0, help="minutes after which evaluations form the plateau"
+    )
     args = ap.parse_args()
     from rich.console import Console
     from rich.table import Table
@@ -73,10 +78,13 @@ def main() -> None:
             continue
         r = load_run(run)
         c = r["config"]
-        groups[(c["algo"], c["goals"], c["objects"])].append(r)
+        variant = ",".join(f"{k}={v}" for k, v in sorted(c.get("agent", {}).items()))
+        groups[(c["algo"], c["goals"], c["objects"], variant)].append(r)
     out = {}
     console = Console()
-    for (algo, goals, objects), runs in sorted(groups.items()):
+    for (algo, goals, objects, variant), runs in sorted(groups.items()):
+        if variant:
+            algo = f"{algo}[{variant}]"
         steps = sorted({e["env_steps"] for r in runs for e in r["evals"]})
         table = Table(title=f"{algo}  {goals} goals  objects={objects}  ({len(runs)} seeds)")
         for col in ("env steps", "minutes (mean)", "success mean", "min", "max", "episodes/eval"):
@@ -121,8 +129,24 @@ def main() -> None:
             )
         console.print(table)
         final = [r["evals"][-1] for r in runs if r["evals"]]
+        plateau = [
+            float(
+                np.mean(
+                    [e["success_rate"] for e in r["evals"] if e["wall_s"] >= 60 * args.plateau_from]
+                    or [np.nan]
+                )
+            )
+            for r in runs
+        ]
+        console.print(
+            f"plateau (mean success of the evaluations from {args.plateau_from:g} min on), per seed: "
+            + " / ".join(f"{p:.1%}" for p in plateau)
+            + f"; mean {np.nanmean(plateau):.1%}"
+        )
         out[f"{algo}/{goals}/{objects}"] = {
             "runs": [r["run"] for r in runs],
+            "plateau_from_min": args.plateau_from,
+            "plateau": plateau,
             "curve": curve,
             "vs_minutes": by_minutes,
             "final": [
