@@ -92,7 +92,8 @@ class TwinQ(nn.Module):
         if self.motion_dirs:
             u = torch.baddbmm(self.bu[:n], xn[..., : self.feature_dim], self.wu[:n])  # (n, R, 3k)
             u = u.unflatten(-1, (self.motion_dirs, MOTION_DIM))  # (n, R, k, 3) directions u_j(f)
-            z = (u * xn[..., self.feature_dim :, None].transpose(-1, -2)).sum(-1)  # (n, R, k): u_j · a
+            a = xn[..., self.feature_dim :]  # (n, R, 3) the motion
+            z = (u * a.unsqueeze(-2)).sum(-1)  # (n, R, k): u_j · a
             h = torch.baddbmm(h, z, self.wz[:n])  # (n, R, H)
         if self.layer_norm:
             h = torch.addcmul(self.ln_bias[:n], F.layer_norm(h, (self.hidden,)), self.ln_weight[:n])
