@@ -53,9 +53,9 @@ def load_policy(
         raise HydoError(f"eval target '{target}' {what}")
     if path.is_file() and path.suffix == ".onnx":
         raise HydoError(f"eval target '{target}' is one graph of a model: give its folder ({path.parent})")
-    from hydo_cli.train import load_agent_policy
+    from hydo_cli.trainer import load_policy_from_checkpoint  # torch: only for runs and checkpoints
 
-    return load_agent_policy(path, seed, feasible_only, weights, chain_noise)
+    return load_policy_from_checkpoint(path, seed, feasible_only, weights, chain_noise)
 
 
 def load_onnx_policy(folder: Path, seed: int, feasible_only: bool = True) -> LoadedPolicy:

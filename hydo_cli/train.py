@@ -277,16 +277,3 @@ def train(
         atomic_write_text(run_dir / "command.txt", shlex.join(["hydo", *sys.argv[1:]]) + "\n")
         atomic_write_text(run_dir / "system.json", json.dumps({**system_info(), **trainer.cpu}, indent=2))
     trainer.run()
-
-
-def load_agent_policy(
-    path: Path,
-    seed: int,
-    feasible_only: bool = True,
-    weights: str | None = None,
-    chain_noise: str | None = None,
-):
-    """A run directory or checkpoint → ``hydo_cli.policies.LoadedPolicy`` (eval-mode agent)."""
-    from hydo_cli.trainer import load_policy_from_checkpoint
-
-    return load_policy_from_checkpoint(path, seed, feasible_only, weights, chain_noise)
