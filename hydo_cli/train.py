@@ -106,6 +106,9 @@ class TrainConfig:
     augment: str = "none"
     """Replay augmentation: none, or yaw90 (each sampled transition's scene turned about z by a random
     multiple of 90°; physics is invariant under rotations about gravity; see models.replay)."""
+    relabel_future: float = 0.0
+    """Hindsight relabelling: the fraction of each sampled batch whose goal becomes the object pose
+    after this or a later primitive of its episode (HER's "future" strategy, models.replay)."""
     threads: int = 2
     """torch intra-op threads: 2 on an idle 2-core machine, 1 when two runs share it."""
     agent: dict = dataclasses.field(default_factory=dict)
@@ -137,6 +140,12 @@ class TrainConfig:
             raise HydoError(f"`augment` must be one of {list(AUGMENTATIONS)}. Got {self.augment!r}.")
         if self.updates_per_step < 0:
             raise HydoError(f"`updates_per_step` must be >= 0. Got {self.updates_per_step}.")
+        if not 0.0 <= self.relabel_future <= 1.0:
+            raise HydoError(f"`relabel_future` must be in [0, 1]. Got {self.relabel_future}.")
+        if self.relabel_future and self.task is not None:
+            raise HydoError(
+                "`relabel_future` needs a goal fixed over the episode; the --task goals follow the object"
+            )
         if self.task is not None:  # --task (eval issue): its scene replaces objects, goals and clutter
             from sim.tasks import TASK_NAMES
 

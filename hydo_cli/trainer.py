@@ -27,6 +27,7 @@ from models.algos import AgentConfig, HybridAgent
 from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from models.perf import configure_cpu
 from models.replay import ReplayBuffer
+from sim.contract import SUCCESS_THRESHOLD_M, pose_matrix
 
 CHECKPOINT_FORMAT = 1
 EVAL_SEED_OFFSET = 10_000  # evaluation episodes never share seeds with training episodes
@@ -109,7 +110,9 @@ class Trainer:
         )
         torch.manual_seed(cfg.seed)
         self.agent = HybridAgent(agent_config(cfg))
-        self.buffer = ReplayBuffer(cfg.buffer_size, cfg.n_obj, cfg.n_bg, seed=cfg.seed)
+        self.buffer = ReplayBuffer(
+            cfg.buffer_size, cfg.n_obj, cfg.n_bg, seed=cfg.seed, success_threshold=SUCCESS_THRESHOLD_M
+        )
         self.rng = np.random.default_rng(cfg.seed)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.env_steps = 0
@@ -214,7 +217,9 @@ class Trainer:
                     else:
                         actions = agent_policy(self.agent, "explore", self.generator)(obs)
                     # 2. step every env; store real next observations (truncation still bootstraps)
-                    batch = {k: [] for k in ("p", "f", "i", "m", "r", "np", "nf", "term", "trunc")}
+                    batch = {
+                        k: [] for k in ("p", "f", "i", "m", "r", "np", "nf", "term", "trunc", "goal", "got")
+                    }
                     for k, (env, action) in enumerate(zip(self.envs, actions, strict=True)):
                         next_obs, reward, terminated, truncated, info = env.step(action)
                         for key, val in zip(
@@ -229,6 +234,8 @@ class Trainer:
                                 next_obs["features"],
                                 terminated,
                                 truncated,
+                                pose_matrix(info["goal_pose"][:3], info["goal_pose"][3:]),
+                                pose_matrix(info["object_pose"][:3], info["object_pose"][3:]),
                             ),
                             strict=True,
                         ):
@@ -247,7 +254,8 @@ class Trainer:
                     if self.env_steps >= cfg.learning_starts and len(self.buffer) >= cfg.batch_size:
                         update_debt += cfg.updates_per_step * len(self.envs)
                         while update_debt >= 1.0:
-                            last_metrics = self.agent.update(self.buffer.sample(cfg.batch_size, cfg.augment))
+                            sampled = self.buffer.sample(cfg.batch_size, cfg.augment, cfg.relabel_future)
+                            last_metrics = self.agent.update(sampled)
                             self.updates += 1
                             update_debt -= 1.0
                     # 4. log, evaluate, checkpoint

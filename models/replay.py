@@ -5,8 +5,21 @@ at 0.5 m, far below the sensors' noise) which halves memory against float32; mot
 ``terminated`` kept apart from ``truncated`` so that hitting the primitive cap still bootstraps.
 Sampling returns a :class:`ReplayBatch` of float32 torch tensors.
 
-Memory (N = N_obj + N_bg points): two clouds of ``N × (3 + 4)`` float16 per transition, i.e.
-``28·N + 26`` bytes; N = 256 → 7.2 kB, 200k transitions → 1.4 GB.
+Hindsight relabelling (Andrychowicz et al. 2017, HER's "future" strategy): when the caller also
+stores each transition's goal pose and the object pose it reached, ``sample(..., relabel_future=f)``
+gives a fraction ``f`` of the batch the goal "the pose the object had after this or a later primitive
+of the same episode" instead of the episode's own. The goal only enters the observation through the
+goal flow, so the new flow follows from the stored one without the object's mesh: the point ``p``
+with flow ``φ`` sits at ``q = p + φ`` in the old goal pose ``G``, so for a new goal ``G'``::
+
+    φ' = G' · G⁻¹ · q − p          (object points; background flow stays 0)
+
+and the reward and success are recomputed from ``φ'`` of the next observation. Every transition then
+also teaches the critic what its push actually did, near the goal as much as far from it.
+
+Memory (N = N_obj + N_bg points): two clouds of ``N × (3 + 4)`` float16 per transition plus the two
+poses (3 × 4 float32 each) and an episode link, i.e. ``28·N + 127`` bytes; N = 256 → 7.3 kB, 200k
+transitions → 1.4 GB.
 
 Resume: :meth:`save` / :meth:`load` write the filled part and the sampling RNG state to one ``.npz``
 (atomically), so a resumed run samples exactly what it would have sampled.
@@ -92,12 +105,23 @@ class ReplayBuffer:
         n_bg: background points per cloud.
         seed: seed of the sampling RNG (``numpy.random.Generator``).
         device: torch device of sampled batches.
+        success_threshold: mean goal-flow norm (metres) under which a relabelled goal counts as
+            reached (the env's contract; only hindsight relabelling uses it).
     """
 
-    def __init__(self, capacity: int, n_obj: int, n_bg: int, seed: int = 0, device: str = "cpu") -> None:
+    def __init__(
+        self,
+        capacity: int,
+        n_obj: int,
+        n_bg: int,
+        seed: int = 0,
+        device: str = "cpu",
+        success_threshold: float = 0.03,
+    ) -> None:
         if capacity < 1:
             raise ValueError(f"`capacity` must be ≥ 1. Got {capacity}.")
         self.capacity, self.n_obj, self.n_bg = capacity, n_obj, n_bg
+        self.success_threshold = success_threshold
         self.n_points = n_obj + n_bg
         self.device = torch.device(device)
         self.rng = np.random.default_rng(seed)
@@ -121,12 +145,20 @@ class ReplayBuffer:
         self.reward = np.zeros((c,), dtype=np.float32)
         self.terminated = np.zeros((c,), dtype=np.bool_)
         self.truncated = np.zeros((c,), dtype=np.bool_)
+        # hindsight relabelling: the goal pose in force and the object pose reached after the
+        # primitive (rows 0-2 of the world transforms), and the slot of the episode's next transition
+        self.goal_T = np.zeros((c, 3, 4), dtype=np.float32)
+        self.achieved_T = np.zeros((c, 3, 4), dtype=np.float32)
+        self.has_poses = np.zeros((c,), dtype=np.bool_)
+        self.next_slot = np.full((c,), -1, dtype=np.int32)
+        self._last_slot: dict[int, int] = {}  # stream (env) id → its latest slot, while its episode runs
 
     @property
     def bytes_per_transition(self) -> int:
         """Bytes one stored transition occupies (both clouds float16, action, reward, flags)."""
         cloud = self.n_points * (3 + FEATURE_DIM) * 2  # float16
-        return 2 * cloud + 4 + 3 * 4 + 4 + 1 + 1
+        poses = 2 * 12 * 4 + 1 + 4  # goal_T, achieved_T, has_poses, next_slot
+        return 2 * cloud + 4 + 3 * 4 + 4 + 1 + 1 + poses
 
     @property
     def nbytes(self) -> int:
@@ -147,11 +179,19 @@ class ReplayBuffer:
         next_features: np.ndarray,
         terminated: np.ndarray | bool,
         truncated: np.ndarray | bool,
+        goal_T: np.ndarray | None = None,
+        achieved_T: np.ndarray | None = None,
     ) -> None:
         """Store one transition (``points (N, 3)`` …) or a batch of them (``points (E, N, 3)`` …).
 
         ``points``/``features`` are the observation the action was taken in; ``next_*`` the real
         next observation even when the episode was truncated (the bootstrap needs it).
+
+        For hindsight relabelling also pass ``goal_T (E, 4, 4)``, the goal pose in force (fixed over
+        an episode), and ``achieved_T (E, 4, 4)``, the object pose after the primitive (world
+        transforms). Row ``k`` of a batch is then read as the next primitive of stream (env) ``k``:
+        consecutive rows of one stream are linked until one ends its episode (terminated or
+        truncated), so add every env's transition in the same order at each step.
         """
         points = np.asarray(points)
         single = points.ndim == 2
@@ -181,38 +221,122 @@ class ReplayBuffer:
         slots = (self.pos + np.arange(e)) % self.capacity
         for name, x in zip(shapes, cols, strict=True):
             getattr(self, name)[slots] = x
+        self.next_slot[slots] = -1
+        if (goal_T is None) != (achieved_T is None):
+            raise ValueError("pass both `goal_T` and `achieved_T`, or neither")
+        if goal_T is None:
+            self.has_poses[slots] = False
+            self._last_slot.clear()
+        else:
+            goal_T, achieved_T = (np.asarray(x).reshape(e, 4, 4)[:, :3] for x in (goal_T, achieved_T))
+            self.goal_T[slots], self.achieved_T[slots] = goal_T, achieved_T
+            self.has_poses[slots] = True
+            ended = cols[7] | cols[8]
+            for k, slot in enumerate(slots.tolist()):
+                prev = self._last_slot.pop(k, None)
+                if prev is not None:
+                    self.next_slot[prev] = slot
+                if not ended[k]:
+                    self._last_slot[k] = slot
         self.full = self.full or self.pos + e >= self.capacity
         self.pos = int((self.pos + e) % self.capacity)
 
-    def sample(self, batch_size: int, augment: str = "none") -> ReplayBatch:
+    def sample(self, batch_size: int, augment: str = "none", relabel_future: float = 0.0) -> ReplayBatch:
         """Uniformly sample ``batch_size`` stored transitions (with replacement across calls).
 
-        ``augment="yaw90"`` turns each transition's whole scene about the world z axis by a random
-        multiple of 90° (:func:`rotate_yaw90`).
+        ``relabel_future = f`` relabels about a fraction ``f`` of them (those stored with poses) with a
+        goal reached later in their episode (:meth:`relabel`). ``augment="yaw90"`` turns each
+        transition's whole scene about the world z axis by a random multiple of 90°
+        (:func:`rotate_yaw90`).
         """
         if len(self) == 0:
             raise ValueError("cannot sample from an empty replay buffer")
         if augment not in AUGMENTATIONS:
             raise ValueError(f"`augment` must be one of {list(AUGMENTATIONS)}. Got {augment!r}.")
+        if not 0.0 <= relabel_future <= 1.0:
+            raise ValueError(f"`relabel_future` must be in [0, 1]. Got {relabel_future}.")
         i = self.rng.integers(0, len(self), size=batch_size)
+        cols = {
+            "points": self.points[i].astype(np.float32),
+            "features": self.features[i].astype(np.float32),
+            "next_points": self.next_points[i].astype(np.float32),
+            "next_features": self.next_features[i].astype(np.float32),
+            "reward": self.reward[i],
+            "terminated": self.terminated[i],
+        }
+        if relabel_future > 0.0:
+            pick = (self.rng.random(batch_size) < relabel_future) & self.has_poses[i]
+            rows = np.flatnonzero(pick)
+            if rows.size:
+                self.relabel(i[rows], rows, cols)
 
         def t(x: np.ndarray, dtype=torch.float32) -> torch.Tensor:
-            return torch.from_numpy(x[i]).to(device=self.device, dtype=dtype)
+            return torch.from_numpy(np.ascontiguousarray(x)).to(device=self.device, dtype=dtype)
 
         batch = ReplayBatch(
-            points=t(self.points),
-            features=t(self.features),
-            index=t(self.index, torch.int64),
-            motion=t(self.motion),
-            reward=t(self.reward),
-            next_points=t(self.next_points),
-            next_features=t(self.next_features),
-            terminated=t(self.terminated),
-            truncated=t(self.truncated),
+            points=t(cols["points"]),
+            features=t(cols["features"]),
+            index=t(self.index[i], torch.int64),
+            motion=t(self.motion[i]),
+            reward=t(cols["reward"]),
+            next_points=t(cols["next_points"]),
+            next_features=t(cols["next_features"]),
+            terminated=t(cols["terminated"]),
+            truncated=t(self.truncated[i]),
         )
         if augment == "yaw90":
             batch = rotate_yaw90(batch, torch.from_numpy(self.rng.integers(0, 4, size=batch_size)))
         return batch
+
+    def future_slots(self, slots: np.ndarray) -> np.ndarray:
+        """For each slot (S,), a uniformly drawn slot of the same episode at or after it (S,) int.
+
+        Follows the episode links: an episode has at most a few dozen primitives, so this is a few
+        vectorised hops, never a per-transition Python loop."""
+        slots = np.asarray(slots, dtype=np.int64)
+        remaining = np.zeros_like(slots)  # transitions after each slot in its episode, so far stored
+        cur = slots.copy()
+        for _ in range(self.capacity):
+            nxt = self.next_slot[cur]
+            live = nxt >= 0
+            if not live.any():
+                break
+            remaining += live
+            cur = np.where(live, nxt, cur)
+        hops = np.floor(self.rng.random(slots.shape) * (remaining + 1)).astype(np.int64)
+        out = slots.copy()
+        for _ in range(int(hops.max(initial=0))):
+            step = hops > 0
+            out = np.where(step, self.next_slot[out], out)
+            hops -= step
+        return out
+
+    def relabel(self, slots: np.ndarray, rows: np.ndarray, cols: dict[str, np.ndarray]) -> None:
+        """Replace, in place, the goal of batch ``rows`` (stored at ``slots``) by a future achieved pose.
+
+        ``cols`` holds the batch's float32 ``points``/``features``/``next_points``/``next_features``
+        (B, N, ·), ``reward`` (B,) and ``terminated`` (B,). The new reward is ``−mean ‖φ'‖`` over the
+        next observation's object points (the env averages over the whole surface: a sampling
+        difference of a few per cent); an episode that ended by failure (the object left the bin)
+        stays terminated, any other is terminated exactly when the new goal is reached.
+        """
+        new_goal = np.zeros((len(slots), 4, 4), dtype=np.float64)
+        new_goal[:, :3] = self.achieved_T[self.future_slots(slots)]
+        new_goal[:, 3, 3] = 1.0
+        old_goal = np.zeros_like(new_goal)
+        old_goal[:, :3] = self.goal_T[slots]
+        old_goal[:, 3, 3] = 1.0
+        rel = new_goal @ np.linalg.inv(old_goal)  # (S, 4, 4): old goal pose → new goal pose
+        n = self.n_obj
+        for pts, feat in (("points", "features"), ("next_points", "next_features")):
+            p = cols[pts][rows, :n].astype(np.float64)  # (S, n_obj, 3)
+            q = p + cols[feat][rows, :n, 1:]  # where each point sits in the old goal pose
+            moved = q @ rel[:, :3, :3].transpose(0, 2, 1) + rel[:, None, :3, 3]
+            cols[feat][rows, :n, 1:] = (moved - p).astype(np.float32)
+        distance = np.linalg.norm(cols["next_features"][rows, :n, 1:], axis=-1).mean(axis=1)
+        failed = cols["terminated"][rows] & (cols["reward"][rows] <= -self.success_threshold)
+        cols["reward"][rows] = -distance
+        cols["terminated"][rows] = failed | (distance < self.success_threshold)
 
     _ARRAYS = (
         "points",
@@ -224,6 +348,10 @@ class ReplayBuffer:
         "next_features",
         "terminated",
         "truncated",
+        "goal_T",
+        "achieved_T",
+        "has_poses",
+        "next_slot",
     )
 
     def save(self, path: str | os.PathLike) -> None:
@@ -233,7 +361,13 @@ class ReplayBuffer:
         meta = np.array([self.capacity, self.n_obj, self.n_bg, self.pos, int(self.full)], dtype=np.int64)
         rng_state = np.frombuffer(repr(self.rng.bit_generator.state).encode(), dtype=np.uint8)
         arrays = {k: getattr(self, k)[:n] for k in self._ARRAYS}
-        atomic_write(path, lambda f: np.savez(f, meta=meta, rng=rng_state, **arrays))
+        streams = np.array(sorted(self._last_slot.items()), dtype=np.int64).reshape(-1, 2)
+        atomic_write(
+            path,
+            lambda f: np.savez(
+                f, meta=meta, rng=rng_state, streams=streams, threshold=self.success_threshold, **arrays
+            ),
+        )
 
     @classmethod
     def load(cls, path: str | os.PathLike, device: str = "cpu") -> ReplayBuffer:
@@ -242,10 +376,14 @@ class ReplayBuffer:
 
         with np.load(path) as data:
             capacity, n_obj, n_bg, pos, full = (int(v) for v in data["meta"])
-            buf = cls(capacity, n_obj, n_bg, device=device)
+            threshold = float(data["threshold"]) if "threshold" in data else 0.03
+            buf = cls(capacity, n_obj, n_bg, device=device, success_threshold=threshold)
             n = data["points"].shape[0]
             for k in cls._ARRAYS:
-                getattr(buf, k)[:n] = data[k]
+                if k in data:  # replays written before hindsight relabelling lack the pose arrays
+                    getattr(buf, k)[:n] = data[k]
+            if "streams" in data:
+                buf._last_slot = {int(k): int(v) for k, v in data["streams"]}
             buf.pos, buf.full = pos, bool(full)
             buf.rng.bit_generator.state = ast.literal_eval(bytes(data["rng"]).decode())
         return buf

@@ -14,7 +14,8 @@ Episode end
     terminated on success (mean flow < 3 cm) or when the object leaves the bin; truncated after
     ``MAX_PRIMITIVES`` (10) primitives. A refused primitive (a waypoint outside the workspace, or a
     start pose in collision) leaves the scene unchanged, counts as a step and is reported in
-    ``info["rejected"]`` / ``info["reject_reason"]``.
+    ``info["rejected"]`` / ``info["reject_reason"]``. ``info["object_pose"]`` and ``info["goal_pose"]``
+    hold the object pose after the primitive and the goal pose (position + quaternion wxyz, (7,)).
 Arguments (``gymnasium.make("hydo/Bin-v0", ...)``)
     ``objects`` (split name, object name or mesh folder), ``goals`` (``planar`` | ``6d``), ``obs``
     (``mesh`` | ``render``), ``clutter`` (0, 1, 2 or 5 extra objects in the background cloud),
@@ -263,6 +264,10 @@ class BinEnv(gym.Env):
             "object": self.scene.asset.name,
             "physics_steps": steps,
             "waypoints": waypoints,
+            # poses after the primitive, position (3,) m + quaternion wxyz (4,): hindsight relabelling
+            # (models.replay) turns what the object reached into a goal
+            "object_pose": np.concatenate(self.scene.object_pose()),
+            "goal_pose": np.concatenate(self.goal_pose),
         }
         if self.task is not None and (terminated or truncated):
             info["behaviour"] = self.task.behaviour(self._trajectory)

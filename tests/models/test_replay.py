@@ -63,8 +63,11 @@ def test_fifo_wraps_around():
 
 
 def test_bytes_per_transition_and_capacity_estimate():
-    buf = ReplayBuffer(1, 128, 128)
-    assert buf.bytes_per_transition == 2 * 256 * 7 * 2 + 4 + 12 + 4 + 2  # two float16 clouds + action, flags
+    buf = ReplayBuffer(3, 128, 128)
+    # two float16 clouds + action, reward, flags + the two relabelling poses and the episode link
+    assert buf.bytes_per_transition == 2 * 256 * 7 * 2 + 4 + 12 + 4 + 2 + 2 * 48 + 1 + 4
+    allocated = sum(getattr(buf, k).nbytes for k in ReplayBuffer._ARRAYS)
+    assert allocated == 3 * buf.bytes_per_transition
     assert 200_000 * buf.bytes_per_transition < 1.5 * 2**30  # 200k transitions at N=256: ~1.4 GB
 
 
@@ -131,3 +134,134 @@ def test_sampling_with_yaw90_uses_all_four_turns_and_keeps_motions_in_the_box():
     assert seen == {(1.0, -1.0, 0.3), (1.0, 1.0, 0.3), (-1.0, 1.0, 0.3), (-1.0, -1.0, 0.3)}
     with pytest.raises(ValueError, match="augment"):
         buf.sample(2, augment="flip")
+
+
+def _pose(rng, planar=True):
+    """A random world pose (4, 4) in the bin: yaw (and, unless planar, tilt) and a position."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    angles = [0, 0, rng.uniform(-np.pi, np.pi)] if planar else rng.uniform(-np.pi, np.pi, 3)
+    T[:3, :3] = Rotation.from_euler("xyz", angles).as_matrix()
+    T[:3, 3] = [rng.uniform(-0.15, 0.15), rng.uniform(-0.15, 0.15), 0.03]
+    return T
+
+
+def _episode(rng, local, n_steps, goal, n_bg=4, success_at=None):
+    """An episode's transitions for a rigid object with surface points ``local (n_obj, 3)``: the
+    observation at pose T has points T·local and flows from ``sim.contract.goal_flow``."""
+    from sim.contract import goal_flow, transform_points
+
+    poses = [_pose(rng) for _ in range(n_steps + 1)]
+    if success_at is not None:
+        poses[success_at + 1] = goal.copy()
+    bg = rng.uniform(-0.2, 0.2, (n_bg, 3)).astype(np.float32)
+
+    def obs(T):
+        p = transform_points(T, local).astype(np.float32)
+        f = np.zeros((len(local) + n_bg, 4), np.float32)
+        f[: len(local), 0] = 1.0
+        f[: len(local), 1:] = goal_flow(p, T, goal)
+        return np.concatenate([p, bg]), f
+
+    out = []
+    for t in range(n_steps):
+        (p, f), (p2, f2) = obs(poses[t]), obs(poses[t + 1])
+        dist = np.linalg.norm(f2[: len(local), 1:], axis=1).mean()
+        done = dist < 0.03
+        out.append(
+            dict(points=p, features=f, index=0, motion=np.zeros(3, np.float32), reward=-dist,
+                 next_points=p2, next_features=f2, terminated=done, truncated=t == n_steps - 1 and not done,
+                 goal_T=goal, achieved_T=poses[t + 1])
+        )  # fmt: skip
+        if done:
+            break
+    return out, poses
+
+
+def test_hindsight_relabel_gives_the_flow_to_a_later_achieved_pose():
+    """Every relabelled transition carries the goal flow, reward and termination it would have had
+    if a pose its episode reached at or after it had been the goal (computed independently here
+    with the contract's goal_flow)."""
+    from sim.contract import goal_flow
+
+    rng = np.random.default_rng(7)
+    n_obj, n_bg = 16, 4
+    local = rng.uniform(-0.03, 0.03, (n_obj, 3))
+    buf = ReplayBuffer(64, n_obj, n_bg, seed=1)
+    goal = _pose(rng)
+    ep_a, poses_a = _episode(rng, local, 5, goal)
+    ep_b, poses_b = _episode(rng, local, 4, goal)
+    for t in range(5):  # two envs interleaved, as the trainer adds them
+        rows = [ep[t] for ep in (ep_a, ep_b) if t < len(ep)]
+        stack = {k: np.stack([np.asarray(r[k]) for r in rows]) for k in rows[0]}
+        if len(rows) == 1:  # env b's episode ended: its stream is done, a adds alone as stream 0
+            stack = {k: v[:1] for k, v in stack.items()}
+        buf.add(**stack)
+    assert len(buf) == 9
+    seen_future, seen_now = 0, 0
+    for _ in range(20):
+        batch = buf.sample(32, relabel_future=1.0)
+        for b in range(32):
+            p = batch.points[b, :n_obj].numpy().astype(np.float64)
+            p2 = batch.next_points[b, :n_obj].numpy().astype(np.float64)
+            # which achieved pose is the new goal? the one whose flow matches, among the episode's
+            # poses reached at or after this transition
+            matches = []
+            for poses, ep in ((poses_a, ep_a), (poses_b, ep_b)):
+                for t in range(len(ep)):
+                    if not np.allclose(p, ep[t]["points"][:n_obj], atol=2e-4):
+                        continue
+                    for j in range(t, len(ep)):
+                        want = goal_flow(p, poses[t], poses[j + 1])
+                        if np.allclose(batch.features[b, :n_obj, 1:].numpy(), want, atol=1e-3):
+                            matches.append((poses, t, j))
+            assert len(matches) >= 1, "relabelled flow matches no achieved pose of its episode"
+            poses, t, j = matches[0]
+            want_next = goal_flow(p2, poses[t + 1], poses[j + 1])
+            np.testing.assert_allclose(batch.next_features[b, :n_obj, 1:].numpy(), want_next, atol=1e-3)
+            dist = np.linalg.norm(want_next, axis=1).mean()
+            assert batch.reward[b].item() == pytest.approx(-dist, abs=1e-3)
+            assert batch.terminated[b].item() == float(dist < 0.03)
+            np.testing.assert_array_equal(batch.features[b, n_obj:].numpy(), 0.0)  # background
+            seen_future += j > t
+            seen_now += j == t
+    assert seen_now > 0 and seen_future > 0  # both the transition's own outcome and later ones
+
+
+def test_relabel_keeps_failures_terminated_and_off_keeps_the_batch():
+    rng = np.random.default_rng(8)
+    n_obj = 8
+    local = rng.uniform(-0.03, 0.03, (n_obj, 3))
+    goal = _pose(rng)
+    ep, _ = _episode(rng, local, 3, goal)
+    ep[-1]["terminated"], ep[-1]["truncated"] = True, False  # e.g. the object left the bin
+    buf = ReplayBuffer(16, n_obj, 4, seed=0)
+    for row in ep:
+        buf.add(**row)
+    batch = buf.sample(64, relabel_future=1.0)
+    last = np.isclose(batch.points[:, 0, 0].numpy(), ep[-1]["points"][0, 0], atol=2e-4)
+    assert last.any() and (batch.terminated[last] == 1.0).all()
+    plain = buf.sample(64)
+    rewards = {round(float(r["reward"]), 4) for r in ep}
+    assert {round(float(r), 4) for r in plain.reward} <= rewards
+    with pytest.raises(ValueError, match="relabel_future"):
+        buf.sample(4, relabel_future=1.5)
+
+
+def test_relabel_links_survive_save_and_load(tmp_path):
+    rng = np.random.default_rng(9)
+    local = rng.uniform(-0.03, 0.03, (8, 3))
+    ep, _ = _episode(rng, local, 4, _pose(rng))
+    buf = ReplayBuffer(16, 8, 4, seed=0)
+    for row in ep[:2]:
+        buf.add(**row)
+    buf.save(tmp_path / "r.npz")
+    back = ReplayBuffer.load(tmp_path / "r.npz")
+    for row in ep[2:]:
+        buf.add(**row)
+        back.add(**row)
+    np.testing.assert_array_equal(back.next_slot, buf.next_slot)
+    np.testing.assert_array_equal(back.achieved_T, buf.achieved_T)
+    a, b = buf.sample(16, relabel_future=0.5), back.sample(16, relabel_future=0.5)
+    np.testing.assert_array_equal(a.next_features.numpy(), b.next_features.numpy())
