@@ -70,6 +70,21 @@ def test_reward_is_sum_of_info_terms_and_success_threshold():
     assert info["success"] == (info["distance"] < SUCCESS_THRESHOLD_M)
 
 
+def test_info_poses_reproduce_the_observed_goal_flow():
+    """Hindsight relabelling rebuilds goal flows from ``info``'s poses: they must be the poses the
+    next observation was built from."""
+    from sim.contract import goal_flow, pose_matrix
+
+    env = BinEnv(objects="train", goals="6d", n_obj=64, n_bg=32)
+    obs, _ = env.reset(seed=4)
+    obs, *_, info = env.step(heuristic_action(obs, np.random.default_rng(0)))
+    assert not info["rejected"]  # a push that ran, so the pose after it is a new one
+    T_obj = pose_matrix(info["object_pose"][:3], info["object_pose"][3:])
+    T_goal = pose_matrix(info["goal_pose"][:3], info["goal_pose"][3:])
+    want = goal_flow(obs["points"][:64], T_obj, T_goal)
+    np.testing.assert_allclose(obs["features"][:64, 1:], want, atol=1e-5)
+
+
 def test_goal_reached_when_object_placed_at_goal():
     env = BinEnv(objects="cube", goals="6d")
     env.reset(seed=1)
