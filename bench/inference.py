@@ -57,16 +57,18 @@ def main() -> None:
     policy = OnnxPolicy.load(folder)
     env = BinEnv(objects="train", goals="planar", n_obj=cfg.n_obj, n_bg=cfg.n_bg)
     obs, _ = env.reset(seed=0)
-    pts, feats = obs["points"][None], obs["features"][None]
+    pts, feats, nrm = obs["points"][None], obs["features"][None], obs["normals"][None]
     rng = np.random.default_rng(0)
 
     def torch_decision():
         with torch.no_grad():
-            index, motion, _ = agent.act(torch.from_numpy(pts), torch.from_numpy(feats), mode="eval")
+            index, motion, _ = agent.act(
+                torch.from_numpy(pts), torch.from_numpy(feats), mode="eval", normals=torch.from_numpy(nrm)
+            )
         return int(index[0])
 
     def ort_decision():
-        return int(policy.decide(pts, feats, policy.noise(1, rng))["index"][0])
+        return int(policy.decide(pts, feats, policy.noise(1, rng), nrm)["index"][0])
 
     per_graph = {"encoder": [], "actor": [], "critic": []}
     for _ in range(20):  # warm-up both
@@ -82,7 +84,8 @@ def main() -> None:
     noise = policy.noise(1, rng)
     for _ in range(args.runs):
         t0 = time.perf_counter()
-        pf = policy.encoder.run(None, {"points": pts, "features": feats})[0]
+        enc_inputs = {"points": pts, "features": feats} | ({"normals": nrm} if policy.needs_normals else {})
+        pf = policy.encoder.run(None, enc_inputs)[0]
         t1 = time.perf_counter()
         motions = policy.actor.run(None, {"point_features": pf, "noise": noise})[0]
         t2 = time.perf_counter()

@@ -48,6 +48,7 @@ from sim.atomic import atomic_write_text  # noqa: E402
 from sim.baselines import heuristic_action  # noqa: E402
 
 N_HEURISTIC = 4  # heuristic candidates per step (it samples among its contact points)
+NEAR_GOAL_M = 0.07  # pushes that start this close to the goal decide success (as bench/outcome.py)
 
 
 def random_candidates(n_candidates: int, rng: np.random.Generator):
@@ -84,26 +85,49 @@ def policy_candidates(agent, top: int, seed: int):
     return propose
 
 
-def search_episode(env, propose, seed: int) -> dict:
+def try_push(env, snapshot, action, perturb_m: float, rng: np.random.Generator) -> float:
+    """Distance after ``action`` tried from ``snapshot`` (inf if refused or the object left the bin),
+    then back to the snapshot. With ``perturb_m > 0`` the push is tried slightly off: its contact
+    point moved ``perturb_m`` metres along a random tangent of the surface and its push path by
+    about as much (``rng``); what is executed afterwards is the unperturbed action."""
+    index, motion = action
+    if perturb_m > 0:
+        normal = env._obs["normals"][index]
+        tangent = np.cross(normal, rng.normal(size=3))
+        tangent /= max(np.linalg.norm(tangent), 1e-9)
+        env._obs["points"][index] += (perturb_m * tangent).astype(np.float32)  # undone by set_sim_state
+        jitter = rng.normal(0.0, perturb_m / (3 * 0.03), 3)  # three moves of 0.03·motion metres each
+        motion = np.clip(np.asarray(motion) + jitter, -1.0, 1.0)
+    _, _, _, _, tried = env.step((index, motion))
+    env.set_sim_state(snapshot)
+    bad = tried["rejected"] or tried["failure"] == "object_left_bin"
+    return np.inf if bad else tried["distance"]
+
+
+def search_episode(env, propose, seed: int, perturb_m: float = 0.0) -> dict:
     """One episode of greedy one-step search over ``propose(obs)``'s candidates; returns its
-    outcome and the largest replay error."""
+    outcome, the largest replay error and, with ``perturb_m``, the pairs (exact, perturbed) of the
+    distances the candidates reached (the searcher then judges each push by its perturbed twin)."""
     obs, info = env.reset(seed=seed)
-    replay_error, steps = 0.0, 0
+    rng = np.random.default_rng(seed)
+    replay_error, steps, pairs = 0.0, 0, []
     while True:
         snapshot = env.get_sim_state()
         candidates = propose(obs)
-        best, best_d = candidates[0], np.inf
+        best, best_d, best_exact = candidates[0], np.inf, np.inf
         for action in candidates:
-            _, _, _, _, tried = env.step(action)
-            bad = tried["rejected"] or tried["failure"] == "object_left_bin"
-            d = np.inf if bad else tried["distance"]
-            if d < best_d:
-                best, best_d = action, d
-            env.set_sim_state(snapshot)
+            d = try_push(env, snapshot, action, 0.0, rng)
+            judged = d
+            if perturb_m > 0:
+                judged = try_push(env, snapshot, action, perturb_m, rng)
+                before = float(np.linalg.norm(obs["features"][: len(obs["normals"]), 1:], axis=1).mean())
+                pairs.append((before, d, judged))
+            if judged < best_d:
+                best, best_d, best_exact = action, judged, d
         obs, _, terminated, truncated, info = env.step(best)
         steps += 1
-        if np.isfinite(best_d):
-            replay_error = max(replay_error, abs(info["distance"] - best_d))
+        if np.isfinite(best_exact):
+            replay_error = max(replay_error, abs(info["distance"] - best_exact))
         if terminated or truncated:
             return {
                 "object": info["object"],
@@ -111,6 +135,7 @@ def search_episode(env, propose, seed: int) -> dict:
                 "steps": steps,
                 "final_distance": float(info["distance"]),
                 "replay_error": replay_error,
+                "pairs": pairs,
             }
 
 
@@ -122,6 +147,13 @@ def main() -> None:
         "--top", default="1,4,16", help="with --run: comma-separated numbers of top-ranked points"
     )
     ap.add_argument("--episodes", type=int, default=40)
+    ap.add_argument(
+        "--perturb-mm",
+        type=float,
+        default=0.0,
+        help="judge each candidate by the same push tried this far off (contact point and path): "
+        "how much of the search's success rests on outcomes no observation could predict",
+    )
     ap.add_argument("--objects", default="train")
     ap.add_argument("--goals", default="planar", choices=["planar", "6d"])
     ap.add_argument("--seed", type=int, default=0)
@@ -150,8 +182,13 @@ def main() -> None:
         rng = np.random.default_rng(args.seed)
         propose = random_candidates(c, rng) if args.run is None else policy_candidates(agent, c, args.seed)
         t0 = time.perf_counter()
-        eps = [search_episode(env, propose, args.seed * 100_000 + i) for i in range(args.episodes)]
+        eps = [
+            search_episode(env, propose, args.seed * 100_000 + i, args.perturb_mm / 1000)
+            for i in range(args.episodes)
+        ]
         ok = [e for e in eps if e["success"]]
+        pairs = np.array([p for e in eps for p in e["pairs"]]).reshape(-1, 3)
+        pairs = pairs[np.isfinite(pairs).all(axis=1) & (pairs[:, 0] < NEAR_GOAL_M)]
         results[f"{'top' if args.run else 'C'}={c}"] = {
             "candidates": c,
             "episodes": len(eps),
@@ -161,6 +198,15 @@ def main() -> None:
             "max_replay_error_m": float(max(e["replay_error"] for e in eps)),
             "wall_s": time.perf_counter() - t0,
         }
+        if args.perturb_mm > 0:  # outcome noise near the goal: exact vs perturbed distance after a push
+            change = pairs[:, 1] - pairs[:, 0]
+            results[f"{'top' if args.run else 'C'}={c}"] |= {
+                "perturb_mm": args.perturb_mm,
+                "near_pairs": len(pairs),
+                "near_perturbed_rms_diff_m": float(np.sqrt(np.mean((pairs[:, 1] - pairs[:, 2]) ** 2))),
+                "near_change_std_m": float(change.std()),
+                "near_perturbed_change_corr": float(np.corrcoef(change, pairs[:, 2] - pairs[:, 0])[0, 1]),
+            }
 
     source = f"{args.run}'s top-ranked proposals" if args.run else "heuristic + random candidates"
     table = Table(title=f"one-step lookahead over {source} ({args.objects} objects, {args.goals} goals)")
@@ -186,6 +232,14 @@ def main() -> None:
             f"{r['wall_s']:.0f}",
         )
     Console().print(table)
+    for name, r in results.items():
+        if "near_pairs" in r:
+            print(
+                f"{name}: near the goal ({r['near_pairs']} pushes), a push tried {r['perturb_mm']:g} mm off "
+                f"ends {r['near_perturbed_rms_diff_m'] * 100:.2f} cm (rms) from the exact one; the change of "
+                f"distance has std {r['near_change_std_m'] * 100:.2f} cm, correlation exact vs perturbed "
+                f"{r['near_perturbed_change_corr']:.3f}"
+            )
     if args.json:
         meta = {"command": "python " + " ".join(sys.argv), "python": platform.python_version(), **vars(args)}
         meta["json"] = str(args.json)

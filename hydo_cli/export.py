@@ -72,17 +72,20 @@ def _real_observations(cfg, n: int, seed: int):
 
 def verify(folder: Path, agent, graphs, torch, observations, rng: np.random.Generator) -> dict:
     """onnxruntime vs the exported torch ``graphs`` (``models.export.export_modules``, which decide as
-    ``hydo eval`` does: tests/models/test_algos.py) on ``observations`` (list of (points, features)),
-    fed the same noise; raise on mismatch."""
+    ``hydo eval`` does: tests/models/test_algos.py) on ``observations`` (list of (points, features,
+    normals)), fed the same noise; raise on mismatch."""
     from robot.onnx_policy import OnnxPolicy
 
     policy = OnnxPolicy.load(folder)
     max_motion, max_q, agree = 0.0, 0.0, 0
-    for points, features in observations:
+    for points, features, normals in observations:
         noise = policy.noise(points.shape[0], rng)
-        ort = policy.decide(points, features, noise)
+        ort = policy.decide(points, features, noise, normals, feasible_only=False)
         with torch.no_grad():
-            f = graphs["encoder"](torch.from_numpy(points), torch.from_numpy(features))
+            enc_args = [torch.from_numpy(points), torch.from_numpy(features)]
+            if agent.config.encoder_normals:
+                enc_args.append(torch.from_numpy(normals))
+            f = graphs["encoder"](*enc_args)
             motions = graphs["actor"](f, torch.from_numpy(noise))
             q = agent.decision_q(graphs["critic"](f, motions))
         max_motion = max(max_motion, float(np.abs(ort["motions"] - motions.numpy()).max()))
@@ -92,7 +95,7 @@ def verify(folder: Path, agent, graphs, torch, observations, rng: np.random.Gene
         q_np = q.numpy()
         rows = np.arange(q_np.shape[0])
         agree += int(np.sum(q_np.max(-1) - q_np[rows, ort["index"]] <= TOLERANCE))
-    total = sum(p.shape[0] for p, _ in observations)
+    total = sum(p.shape[0] for p, _, _ in observations)
     report = {
         "max_abs_error_motion": max_motion,
         "max_abs_error_q": max_q,
@@ -122,6 +125,7 @@ def export_agent(agent, cfg, command: str, out: Path, seed: int = 0, n_checks: i
         CRITIC_INPUTS,
         CRITIC_OUTPUTS,
         ENCODER_INPUTS,
+        ENCODER_INPUTS_WITH_NORMALS,
         ENCODER_OUTPUTS,
         FILES,
         FORMAT,
@@ -139,6 +143,7 @@ def export_agent(agent, cfg, command: str, out: Path, seed: int = 0, n_checks: i
     points = torch.rand(b, n, 3, generator=gen) * 0.3
     features = torch.zeros(b, n, FEATURE_DIM)
     features[:, : cfg.n_obj, 0] = 1.0
+    normals = torch.nn.functional.normalize(torch.randn(b, cfg.n_obj, 3, generator=gen), dim=-1)
     pf = torch.randn(b, cfg.n_obj, d, generator=gen)
     noise = torch.randn(b, cfg.n_obj, s, 3, generator=gen)
     motion = torch.rand(b, cfg.n_obj, 3, generator=gen) * 2 - 1
@@ -149,14 +154,16 @@ def export_agent(agent, cfg, command: str, out: Path, seed: int = 0, n_checks: i
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
     try:
+        with_normals = agent.config.encoder_normals
         _export_one(
             torch,
             enc,
-            (points, features),
-            ENCODER_INPUTS,
+            (points, features, normals) if with_normals else (points, features),
+            ENCODER_INPUTS_WITH_NORMALS if with_normals else ENCODER_INPUTS,
             ENCODER_OUTPUTS,
             tmp / FILES[0],
-            {"points": {0: batch}, "features": {0: batch}},
+            {"points": {0: batch}, "features": {0: batch}}
+            | ({"normals": {0: batch}} if with_normals else {}),
         )
         _export_one(
             torch,
@@ -186,6 +193,7 @@ def export_agent(agent, cfg, command: str, out: Path, seed: int = 0, n_checks: i
             "n_obj": cfg.n_obj,
             "n_bg": cfg.n_bg,
             "feature_dim": d,
+            "encoder_inputs": list(ENCODER_INPUTS_WITH_NORMALS if with_normals else ENCODER_INPUTS),
             "denoise_steps": agent.config.denoise_steps,
             "noise_per_point": s,
             "noise_schedule": {
@@ -224,15 +232,15 @@ def export_agent(agent, cfg, command: str, out: Path, seed: int = 0, n_checks: i
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
         rng = np.random.default_rng(seed)
         real = _real_observations(cfg, n_checks // 2, seed)
-        checks = [(np.stack([o["points"] for o in real]), np.stack([o["features"] for o in real]))]
+        checks = [tuple(np.stack([o[k] for o in real]) for k in ("points", "features", "normals"))]
         rnd = []
         for _ in range(n_checks - n_checks // 2):
             o = real[int(rng.integers(len(real)))]
             p = (o["points"] + rng.normal(0, 0.01, o["points"].shape)).astype(np.float32)
             f = o["features"].copy()
             f[: cfg.n_obj, 1:] = rng.normal(0, 0.1, (cfg.n_obj, 3)).astype(np.float32)
-            rnd.append((p, f))
-        checks.append((np.stack([p for p, _ in rnd]), np.stack([f for _, f in rnd])))
+            rnd.append((p, f, o["normals"]))
+        checks.append(tuple(np.stack([r[j] for r in rnd]) for j in range(3)))
         report = verify(tmp, agent, graphs, torch, checks, rng)
         manifest["verification"] = report
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))

@@ -70,8 +70,9 @@ def load_onnx_policy(folder: Path, seed: int, feasible_only: bool = True) -> Loa
     def policy(observations):
         points = np.stack([o["points"] for o in observations])
         features = np.stack([o["features"] for o in observations])
-        normals = np.stack([o["normals"] for o in observations]) if feasible_only else None
-        out = model.decide(points, features, model.noise(len(observations), rng), normals)
+        normals = np.stack([o["normals"] for o in observations])
+        noise = model.noise(len(observations), rng)
+        out = model.decide(points, features, noise, normals, feasible_only=feasible_only)
         return list(zip(out["index"].tolist(), out["motion"], strict=True))
 
     return LoadedPolicy(

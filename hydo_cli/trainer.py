@@ -57,9 +57,11 @@ def agent_policy(agent: HybridAgent, mode: str, generator: torch.Generator, feas
 
     def policy(observations):
         points, features = stack_obs(observations)
-        normals = torch.from_numpy(np.stack([o["normals"] for o in observations])) if feasible_only else None
+        normals = torch.from_numpy(np.stack([o["normals"] for o in observations]))
         with torch.no_grad():
-            index, motion, _ = agent.act(points, features, mode=mode, generator=generator, normals=normals)
+            index, motion, _ = agent.act(
+                points, features, mode=mode, generator=generator, normals=normals, feasible_only=feasible_only
+            )
         return list(zip(index.tolist(), motion.numpy(), strict=True))
 
     return policy
@@ -218,7 +220,22 @@ class Trainer:
                         actions = agent_policy(self.agent, "explore", self.generator)(obs)
                     # 2. step every env; store real next observations (truncation still bootstraps)
                     batch = {
-                        k: [] for k in ("p", "f", "i", "m", "r", "np", "nf", "term", "trunc", "goal", "got")
+                        k: []
+                        for k in (
+                            "p",
+                            "f",
+                            "i",
+                            "m",
+                            "r",
+                            "np",
+                            "nf",
+                            "term",
+                            "trunc",
+                            "goal",
+                            "got",
+                            "n",
+                            "nn",
+                        )
                     }
                     for k, (env, action) in enumerate(zip(self.envs, actions, strict=True)):
                         next_obs, reward, terminated, truncated, info = env.step(action)
@@ -236,6 +253,8 @@ class Trainer:
                                 truncated,
                                 pose_matrix(info["goal_pose"][:3], info["goal_pose"][3:]),
                                 pose_matrix(info["object_pose"][:3], info["object_pose"][3:]),
+                                obs[k]["normals"],
+                                next_obs["normals"],
                             ),
                             strict=True,
                         ):

@@ -108,6 +108,9 @@ class AgentConfig:
     ~40 % of hydo-cm's updates/s, bench/learner.py)."""
     length_scale: float = 0.1
     """Metres per network unit for positions and goal flow inside the encoder."""
+    encoder_normals: bool = False
+    """The encoder also takes the object points' normals (``PointEncoder(normals=True)``; the ONNX
+    encoder then has a third input, ``normals``)."""
 
     # heads
     actor_hidden: int = 64
@@ -406,6 +409,7 @@ class HybridAgent:
                 global_dim=config.encoder_global,
                 knn=config.encoder_knn,
                 length_scale=config.length_scale,
+                normals=config.encoder_normals,
             )
             self.critic = TwinQ(
                 config.feature_dim,
@@ -507,6 +511,7 @@ class HybridAgent:
         generator: torch.Generator | None = None,
         normals: torch.Tensor | None = None,
         workspace: Workspace = SIM_WORKSPACE,
+        feasible_only: bool = True,
     ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
         """Choose ``(index (B,) int64, motion (B, 3) in [-1, 1])`` for a batch of observations.
 
@@ -523,9 +528,9 @@ class HybridAgent:
           Polyak-averaged encoder and critic).
 
         Q at each point is scored on the motion proposed at that point (TD3: Q1, as HACMan; SAC: the
-        twin minimum). With the object points' unit ``normals (B, N_obj, 3)``, the location is chosen
-        among the points whose push can run (``sim.primitive.feasible_points`` with ``workspace``;
-        all points if none can). ``info``: ``q (B, N_obj)`` (unmasked), ``q_select (B, N_obj)`` (the Q the
+        twin minimum). With the object points' unit ``normals (B, N_obj, 3)`` and ``feasible_only``,
+        the location is chosen among the points whose push can run (``sim.primitive.feasible_points``
+        with ``workspace``; all points if none can). An encoder with ``encoder_normals`` needs them. ``info``: ``q (B, N_obj)`` (unmasked), ``q_select (B, N_obj)`` (the Q the
         location is chosen on: −inf at infeasible points), ``location_probs (B, N_obj)``,
         ``motions (B, N_obj, 3)``, ``motion_log_prob (B,)`` (log-prob estimate of the chosen point's
         motion).
@@ -533,7 +538,7 @@ class HybridAgent:
         self._check_obs(points, features)
         cfg = self.config
         nets = self.acting_networks(mode)
-        f = nets.encoder(points, features)  # (B, N_obj, D)
+        f = nets.encoder(points, features, normals)  # (B, N_obj, D)
         b, n = f.shape[:2]
         noise = torch.randn(nets.motion_policy.noise_shape(b, n), generator=generator)
         deterministic = mode == "eval" and not self.eval_stochastic
@@ -541,7 +546,7 @@ class HybridAgent:
         q_twin = nets.critic(f, motions)  # (B, N_obj, 2)
         q = self.decision_q(q_twin)  # (B, N_obj)
         q_select = q
-        if normals is not None:
+        if normals is not None and feasible_only:
             pts = points.numpy()
             feasible = feasible_points(pts[:, :n], normals.numpy(), motions.numpy(), pts, workspace)
             q_select = torch.from_numpy(mask_infeasible(q.numpy(), feasible)).to(q.dtype)
@@ -603,7 +608,9 @@ class HybridAgent:
 
         # 1. Encode s once with grad. The per-point head runs with grad on the executed points only
         #    and without grad on every object point (the actor's detached features).
-        ctx = self.encoder.encode_context(batch.points, batch.features)  # local (B, N_obj, H), context (B, H)
+        ctx = self.encoder.encode_context(
+            batch.points, batch.features, batch.normals
+        )  # local (B, N_obj, H), context (B, H)
         f_taken = self.encoder.head(ctx.local[rows, batch.index], ctx.context)  # (B, D)
         with torch.no_grad():
             f_obj = self.encoder.head(ctx.local, ctx.context[:, None])  # (B, N_obj, D), detached
@@ -611,7 +618,9 @@ class HybridAgent:
 
         # 2. Target: exact expectation over all object points of s' and a motion sampled at each.
         with torch.no_grad():
-            f_next = self.encoder_target(batch.next_points, batch.next_features)  # (B, N_obj, D)
+            f_next = self.encoder_target(
+                batch.next_points, batch.next_features, batch.next_normals
+            )  # (B, N_obj, D)
             noise_next = self._randn(*noise_shape(b, n_obj))  # (B, N_obj, S, 3)
             if self.is_sac:
                 # One chain call samples a' at s' and, when the actor is scored below, a at s.

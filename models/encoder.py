@@ -8,11 +8,18 @@ room for the K-step motion chain, which has to run on every object point in ever
 
 Architecture (H = ``hidden``, G = ``global_dim``, D = ``out_dim``)::
 
-    x_i   = [ (p_i − mean(p_obj)) / s,  is_object_i,  goal_flow_i / s ]      (7,)    s = length_scale
+    x_i   = [ (p_i − mean(p_obj)) / s,  is_object_i,  goal_flow_i / s (, n_i) ]  (7,) or (10,)
+                                                     s = length_scale; n_i: normal (0 on background)
     h_i   = MLP_local(x_i)                                                  (H,)    all N points
     h_i  += relu(A h_i + max_{j ∈ kNN(i)} B h_j)      [optional EdgeConv]  (H,)    object points
     g     = [ max_{i ∈ obj} W_g h_i , max_{i ∈ bg} W_g h_i ]                (2G,)   per cloud
     f_i   = LayerNorm(MLP_head(relu(W_h h_i + W_c g)))                      (D,)    object points
+
+With ``normals=True`` the object points' outward unit normals (the observation's ``normals``, which
+the primitive approaches along) enter each point's input. What a push at a point does depends on the
+surface there, and a PointNet cannot estimate a normal from one point: on replay data the normals
+raise the correlation of a predicted with the true change of goal distance near the goal from 0.56
+to 0.63 (``bench/outcome.py``).
 
 Only object points get output features: every head (location, motion, critic) is evaluated on
 object points only, so background points contribute through the global feature alone and the head
@@ -54,6 +61,7 @@ class PointEncoder(nn.Module):
         knn: neighbours of the optional EdgeConv over object points; 0 disables it.
         length_scale: metres mapped to one network unit for positions and goal flow (objects are
             ~5–20 cm, the bin ~0.5 m, so 0.1 m keeps inputs at unit scale).
+        normals: take the object points' normals ``(B, N_obj, 3)`` as a third input.
     """
 
     def __init__(
@@ -65,6 +73,7 @@ class PointEncoder(nn.Module):
         global_dim: int = 64,
         knn: int = 0,
         length_scale: float = 0.1,
+        normals: bool = False,
     ) -> None:
         super().__init__()
         if n_obj < 1 or n_bg < 0:
@@ -72,8 +81,11 @@ class PointEncoder(nn.Module):
         if knn < 0 or (knn > 0 and knn >= n_obj):
             raise ValueError(f"`knn` must be in [0, n_obj). Got {knn} with n_obj={n_obj}.")
         self.n_obj, self.n_bg, self.out_dim, self.knn = n_obj, n_bg, out_dim, knn
+        self.uses_normals = normals
         self.register_buffer("inv_scale", torch.tensor(1.0 / length_scale))
-        self.local = nn.Sequential(nn.Linear(7, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
+        self.local = nn.Sequential(
+            nn.Linear(10 if normals else 7, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU()
+        )
         if knn > 0:
             self.edge_self = nn.Linear(hidden, hidden)
             self.edge_nbr = nn.Linear(hidden, hidden, bias=False)
@@ -83,8 +95,11 @@ class PointEncoder(nn.Module):
         self.head_global = nn.Linear(n_pools * global_dim, hidden, bias=False)
         self.head_out = nn.Sequential(nn.ReLU(), nn.Linear(hidden, out_dim), nn.LayerNorm(out_dim))
 
-    def normalise(self, points: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
-        """``points (B, N, 3)`` metres, ``features (B, N, 4)`` → network input ``(B, N, 7)``.
+    def normalise(
+        self, points: torch.Tensor, features: torch.Tensor, normals: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``points (B, N, 3)`` metres, ``features (B, N, 4)`` (, ``normals (B, N_obj, 3)``) → network
+        input ``(B, N, 7)`` (``(B, N, 10)`` with normals).
 
         Positions are taken relative to the object's centroid (translation invariance: the same push
         on the same object means the same thing anywhere in the bin) and, like the goal flow, divided
@@ -93,14 +108,26 @@ class PointEncoder(nn.Module):
         centre = points[:, : self.n_obj].mean(dim=1, keepdim=True)  # (B, 1, 3)
         pos = (points - centre) * self.inv_scale  # (B, N, 3)
         flow = features[..., 1:] * self.inv_scale  # (B, N, 3)
-        return torch.cat([pos, features[..., :1], flow], dim=-1)  # (B, N, 7)
+        parts = [pos, features[..., :1], flow]
+        if self.uses_normals:  # background points have no normal: zeros (their is_object flag is 0)
+            parts.append(torch.cat([normals, torch.zeros_like(points[:, self.n_obj :])], dim=1))
+        return torch.cat(parts, dim=-1)  # (B, N, 7 | 10)
 
-    def encode_context(self, points: torch.Tensor, features: torch.Tensor) -> EncoderContext:
-        """Everything up to the per-point head: ``(B, N, 3), (B, N, 4)`` → :class:`EncoderContext`."""
+    def encode_context(
+        self, points: torch.Tensor, features: torch.Tensor, normals: torch.Tensor | None = None
+    ) -> EncoderContext:
+        """Everything up to the per-point head: ``(B, N, 3), (B, N, 4)`` (, ``(B, N_obj, 3)``) →
+        :class:`EncoderContext`."""
         n = self.n_obj + self.n_bg
         check_shape("points", points, (None, n, 3))
         check_shape("features", features, (None, n, FEATURE_DIM))
-        x = self.normalise(points, features)
+        if self.uses_normals:
+            if normals is None:
+                raise ValueError(
+                    "this encoder takes the object points' normals: pass `normals` (B, N_obj, 3)"
+                )
+            check_shape("normals", normals, (points.shape[0], self.n_obj, 3))
+        x = self.normalise(points, features, normals)
         h = self.local(x)  # (B, N, H)
         h_obj = h[:, : self.n_obj]  # (B, N_obj, H)
         if self.knn > 0:
@@ -122,8 +149,11 @@ class PointEncoder(nn.Module):
         """Per-point features from local rows ``(..., H)`` and their cloud's context ``(..., H)``."""
         return self.head_out(self.head_local(local) + context)  # (..., D)
 
-    def forward(self, points: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, points: torch.Tensor, features: torch.Tensor, normals: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """``points (B, N, 3)`` float32 metres (object points first), ``features (B, N, 4)``
-        ``[is_object, goal_flow_xyz]`` → object-point features ``(B, N_obj, D)``."""
-        ctx = self.encode_context(points, features)
+        ``[is_object, goal_flow_xyz]`` (, ``normals (B, N_obj, 3)`` unit, when the encoder takes them;
+        ignored otherwise) → object-point features ``(B, N_obj, D)``."""
+        ctx = self.encode_context(points, features, normals)
         return self.head(ctx.local, ctx.context[:, None, :])

@@ -1,6 +1,6 @@
 """The three plain modules behind the ONNX interface (design.md §3), built from a trained agent.
 
-    encoder.onnx  (points (B, N, 3), features (B, N, 4))                  → point_features (B, N_obj, D)
+    encoder.onnx  (points (B, N, 3), features (B, N, 4)[, normals (B, N_obj, 3)]) → point_features (B, N_obj, D)
     actor.onnx    (point_features (B, N_obj, D), noise (B, N_obj, S, 3))   → motion (B, N_obj, 3)
     critic.onnx   (point_features (B, N_obj, D), motion (B, N_obj, 3))     → q (B, N_obj, 2)
 
@@ -36,6 +36,14 @@ class EncoderExport(nn.Module):
 
     def forward(self, points: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
         return self.encoder(points, features)
+
+
+class EncoderWithNormalsExport(EncoderExport):
+    """``(points, features, normals (B, N_obj, 3) unit)`` → ``point_features (B, N_obj, D)``: the
+    encoder of an agent trained with ``encoder_normals``."""
+
+    def forward(self, points: torch.Tensor, features: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+        return self.encoder(points, features, normals)
 
 
 class ActorExport(nn.Module):
@@ -76,7 +84,8 @@ class CriticExport(nn.Module):
 
 def export_modules(agent: HybridAgent) -> dict[str, nn.Module]:
     """``{"encoder": …, "actor": …, "critic": …}``: frozen copies, ready for ``torch.onnx.export``."""
-    mods = {"encoder": EncoderExport(agent), "actor": ActorExport(agent), "critic": CriticExport(agent)}
+    encoder = EncoderWithNormalsExport(agent) if agent.config.encoder_normals else EncoderExport(agent)
+    mods = {"encoder": encoder, "actor": ActorExport(agent), "critic": CriticExport(agent)}
     for m in mods.values():
         m.requires_grad_(False)
     return mods

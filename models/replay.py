@@ -17,9 +17,9 @@ with flow ``φ`` sits at ``q = p + φ`` in the old goal pose ``G``, so for a new
 and the reward and success are recomputed from ``φ'`` of the next observation. Every transition then
 also teaches the critic what its push actually did, near the goal as much as far from it.
 
-Memory (N = N_obj + N_bg points): two clouds of ``N × (3 + 4)`` float16 per transition plus the two
-poses (3 × 4 float32 each) and an episode link, i.e. ``28·N + 127`` bytes; N = 256 → 7.3 kB, 200k
-transitions → 1.4 GB.
+Memory (N = N_obj + N_bg points): two clouds of ``N × (3 + 4)`` float16 and their object normals
+``N_obj × 3`` float16 per transition, plus the two poses (3 × 4 float32 each) and an episode link,
+i.e. ``28·N + 12·N_obj + 127`` bytes; 128 + 128 points → 8.8 kB, 200k transitions → 1.6 GiB.
 
 Resume: :meth:`save` / :meth:`load` write the filled part and the sampling RNG state to one ``.npz``
 (atomically), so a resumed run samples exactly what it would have sampled.
@@ -52,6 +52,8 @@ class ReplayBatch(NamedTuple):
     next_features: torch.Tensor  # (B, N, 4)
     terminated: torch.Tensor  # (B,) 1.0 where the episode ended by success / failure (no bootstrap)
     truncated: torch.Tensor  # (B,) 1.0 where it hit the primitive cap (still bootstraps)
+    normals: torch.Tensor | None = None  # (B, N_obj, 3) unit outward normals of the object points
+    next_normals: torch.Tensor | None = None  # (B, N_obj, 3)
 
 
 AUGMENTATIONS = ("none", "yaw90")
@@ -86,6 +88,8 @@ def rotate_yaw90(batch: ReplayBatch, quarter_turns: torch.Tensor) -> ReplayBatch
         motion=turn(batch.motion),
         next_points=turn(batch.next_points),
         next_features=turn_features(batch.next_features),
+        normals=None if batch.normals is None else turn(batch.normals),
+        next_normals=None if batch.next_normals is None else turn(batch.next_normals),
     )
 
 
@@ -140,6 +144,8 @@ class ReplayBuffer:
         self.features = np.zeros((c, n, FEATURE_DIM), dtype=np.float16)
         self.next_points = np.zeros((c, n, 3), dtype=np.float16)
         self.next_features = np.zeros((c, n, FEATURE_DIM), dtype=np.float16)
+        self.normals = np.zeros((c, n_obj, 3), dtype=np.float16)  # the encoder may take them
+        self.next_normals = np.zeros((c, n_obj, 3), dtype=np.float16)
         self.index = np.zeros((c,), dtype=np.int32)
         self.motion = np.zeros((c, 3), dtype=np.float32)
         self.reward = np.zeros((c,), dtype=np.float32)
@@ -155,8 +161,9 @@ class ReplayBuffer:
 
     @property
     def bytes_per_transition(self) -> int:
-        """Bytes one stored transition occupies (both clouds float16, action, reward, flags)."""
-        cloud = self.n_points * (3 + FEATURE_DIM) * 2  # float16
+        """Bytes one stored transition occupies (both clouds and their normals float16, action,
+        reward, flags, relabelling poses)."""
+        cloud = self.n_points * (3 + FEATURE_DIM) * 2 + self.n_obj * 3 * 2  # float16
         poses = 2 * 12 * 4 + 1 + 4  # goal_T, achieved_T, has_poses, next_slot
         return 2 * cloud + 4 + 3 * 4 + 4 + 1 + 1 + poses
 
@@ -181,11 +188,15 @@ class ReplayBuffer:
         truncated: np.ndarray | bool,
         goal_T: np.ndarray | None = None,
         achieved_T: np.ndarray | None = None,
+        normals: np.ndarray | None = None,
+        next_normals: np.ndarray | None = None,
     ) -> None:
         """Store one transition (``points (N, 3)`` …) or a batch of them (``points (E, N, 3)`` …).
 
         ``points``/``features`` are the observation the action was taken in; ``next_*`` the real
-        next observation even when the episode was truncated (the bootstrap needs it).
+        next observation even when the episode was truncated (the bootstrap needs it). ``normals``
+        / ``next_normals`` ``(E, N_obj, 3)``: the object points' normals of both (stored as zeros
+        when not given; an encoder with ``encoder_normals`` needs them).
 
         For hindsight relabelling also pass ``goal_T (E, 4, 4)``, the goal pose in force (fixed over
         an episode), and ``achieved_T (E, 4, 4)``, the object pose after the primitive (world
@@ -222,6 +233,14 @@ class ReplayBuffer:
         for name, x in zip(shapes, cols, strict=True):
             getattr(self, name)[slots] = x
         self.next_slot[slots] = -1
+        for name, x in (("normals", normals), ("next_normals", next_normals)):
+            if x is None:
+                getattr(self, name)[slots] = 0.0
+                continue
+            x = np.asarray(x).reshape((e, -1, 3))
+            if x.shape != (e, self.n_obj, 3):
+                raise ValueError(f"`{name}` must have shape {(e, self.n_obj, 3)}. Got {x.shape}.")
+            getattr(self, name)[slots] = x
         if (goal_T is None) != (achieved_T is None):
             raise ValueError("pass both `goal_T` and `achieved_T`, or neither")
         if goal_T is None:
@@ -283,6 +302,8 @@ class ReplayBuffer:
             next_features=t(cols["next_features"]),
             terminated=t(cols["terminated"]),
             truncated=t(self.truncated[i]),
+            normals=t(self.normals[i]),
+            next_normals=t(self.next_normals[i]),
         )
         if augment == "yaw90":
             batch = rotate_yaw90(batch, torch.from_numpy(self.rng.integers(0, 4, size=batch_size)))
@@ -348,6 +369,8 @@ class ReplayBuffer:
         "next_features",
         "terminated",
         "truncated",
+        "normals",
+        "next_normals",
         "goal_T",
         "achieved_T",
         "has_poses",
@@ -380,7 +403,7 @@ class ReplayBuffer:
             buf = cls(capacity, n_obj, n_bg, device=device, success_threshold=threshold)
             n = data["points"].shape[0]
             for k in cls._ARRAYS:
-                if k in data:  # replays written before hindsight relabelling lack the pose arrays
+                if k in data:  # older replays lack the pose (and normal) arrays
                     getattr(buf, k)[:n] = data[k]
             if "streams" in data:
                 buf._last_slot = {int(k): int(v) for k, v in data["streams"]}

@@ -282,8 +282,9 @@ class Deployment:
         pts = self.rng.uniform(-0.1, 0.1, (n, 3)).astype(np.float32)
         feats = np.zeros((n, 4), np.float32)
         feats[: p.n_obj, 0] = 1.0
+        normals = np.tile(np.float32([0.0, 0.0, 1.0]), (p.n_obj, 1))
         t = time.perf_counter()
-        p.act(pts, feats, np.random.default_rng(0))
+        p.act(pts, feats, np.random.default_rng(0), normals=normals)
         return time.perf_counter() - t
 
     # --- the run ------------------------------------------------------------------------------------

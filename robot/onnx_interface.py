@@ -3,6 +3,8 @@
 Three graphs and a manifest, all in one folder::
 
     encoder.onnx   points (B, N, 3) float32 metres, features (B, N, 4) float32
+                   [, normals (B, N_obj, 3) float32 unit: models trained with encoder_normals only;
+                   the manifest's "encoder_inputs" lists the inputs]
                    -> point_features (B, N_obj, D): per-point features of the object points
     actor.onnx     point_features (B, M, D), noise (B, M, S, 3) standard normal
                    -> motion (B, M, 3) in [-1, 1]: the K-step sampler unrolled, its noise an input
@@ -20,6 +22,7 @@ from __future__ import annotations
 FORMAT = "hydo-onnx/1"
 FILES = ("encoder.onnx", "actor.onnx", "critic.onnx")
 ENCODER_INPUTS = ("points", "features")
+ENCODER_INPUTS_WITH_NORMALS = ("points", "features", "normals")
 ENCODER_OUTPUTS = ("point_features",)
 ACTOR_INPUTS = ("point_features", "noise")
 ACTOR_OUTPUTS = ("motion",)

@@ -115,6 +115,11 @@ class OnnxPolicy:
     def stochastic(self) -> bool:
         return bool(self.manifest["stochastic"])
 
+    @property
+    def needs_normals(self) -> bool:
+        """Whether the encoder takes the object points' normals (a model trained with encoder_normals)."""
+        return "normals" in [i.name for i in self.encoder.get_inputs()]
+
     def check_inputs(self, points: np.ndarray, features: np.ndarray) -> None:
         n = self.n_obj + self.n_bg
         for name, a, shape in (("points", points, (n, 3)), ("features", features, (n, FEATURE_DIM))):
@@ -134,29 +139,36 @@ class OnnxPolicy:
         normals: np.ndarray | None = None,
         workspace: Workspace = SIM_WORKSPACE,
         bin_box: tuple[np.ndarray, np.ndarray] | None = None,
+        feasible_only: bool = True,
     ) -> dict[str, np.ndarray]:
         """One batched decision. ``points (B, N, 3)``, ``features (B, N, 4)``, ``noise (B, N_obj, S, 3)``.
 
-        With the object points' ``normals (B, N_obj, 3)``, the argmax runs over the points whose push
-        can run (``sim.primitive.feasible_points`` with ``workspace`` and ``bin_box``, as
-        ``HybridAgent.act``; all points if none can).
+        With the object points' ``normals (B, N_obj, 3)`` and ``feasible_only``, the argmax runs over
+        the points whose push can run (``sim.primitive.feasible_points`` with ``workspace`` and
+        ``bin_box``, as ``HybridAgent.act``; all points if none can). A model whose encoder takes
+        normals (``needs_normals``) refuses to decide without them.
 
         Returns ``index (B,)``, ``motion (B, 3)``, ``motions (B, N_obj, 3)``, ``q (B, N_obj)``.
         """
         self.check_inputs(points, features)
-        pf = self.encoder.run(
-            None, {"points": points.astype(np.float32), "features": features.astype(np.float32)}
-        )[0]
+        inputs = {"points": points.astype(np.float32), "features": features.astype(np.float32)}
+        if normals is not None:
+            normals = np.asarray(normals, dtype=np.float32)
+            want = (points.shape[0], self.n_obj, 3)
+            if normals.shape != want or not np.all(np.isfinite(normals)):
+                raise InputError(f"`normals` must be finite with shape {want}, got {normals.shape}")
+        if self.needs_normals:
+            if normals is None:
+                raise InputError("this model's encoder takes the object points' normals: pass `normals`")
+            inputs["normals"] = normals
+        pf = self.encoder.run(None, inputs)[0]
         motions = self.actor.run(None, {"point_features": pf, "noise": noise.astype(np.float32)})[0]
         q_twin = self.critic.run(None, {"point_features": pf, "motion": motions})[0]
         if not (np.all(np.isfinite(motions)) and np.all(np.isfinite(q_twin))):
             raise InputError("the policy produced NaN or inf (motion or Q): refusing to act")
         q = q_twin.min(-1) if self.manifest["q_reduction"] == "min" else q_twin[..., 0]
         q_select = q
-        if normals is not None:
-            normals = np.asarray(normals, dtype=np.float32)
-            if normals.shape != motions.shape or not np.all(np.isfinite(normals)):
-                raise InputError(f"`normals` must be finite with shape {motions.shape}, got {normals.shape}")
+        if normals is not None and feasible_only:
             feasible = feasible_points(points[:, : self.n_obj], normals, motions, points, workspace, bin_box)
             q_select = mask_infeasible(q, feasible)
         index = q_select.argmax(-1)

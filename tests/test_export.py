@@ -58,6 +58,30 @@ def test_categorical_critic_exports_with_parity(tmp_path, critic_options):
     assert q.shape == (1, 32) and np.all((q >= lo) & (q <= hi))
 
 
+def test_encoder_with_normals_exports_with_parity(tmp_path):
+    """An agent trained with ``encoder_normals``: its encoder graph takes a third input, parity holds,
+    the manifest lists the inputs, and the runner refuses to decide without normals."""
+    cfg = TrainConfig(
+        algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent={**TINY, "encoder_normals": True}
+    )
+    agent = HybridAgent(agent_config(cfg))
+    report = export_agent(agent, cfg, "pytest", tmp_path / "model", n_checks=32)
+    assert report["max_abs_error_motion"] <= 1e-4 and report["max_abs_error_q"] <= 1e-4
+    assert report["index_agreement"] == 1.0
+    manifest = json.loads((tmp_path / "model" / "manifest.json").read_text())
+    assert manifest["encoder_inputs"] == ["points", "features", "normals"]
+    policy = OnnxPolicy.load(tmp_path / "model")
+    assert policy.needs_normals
+    pts, feats = _observation()
+    noise = policy.noise(1, np.random.default_rng(0))
+    up = np.tile(np.float32([0, 0, 1]), (1, 32, 1))
+    a = policy.decide(pts, feats, noise, up, feasible_only=False)
+    b = policy.decide(pts, feats, noise, -up, feasible_only=False)
+    assert not np.allclose(a["q"], b["q"])  # the normals reach the graph
+    with pytest.raises(InputError, match="normals"):
+        policy.decide(pts, feats, noise)
+
+
 def _observation():
     rng = np.random.default_rng(3)
     pts = rng.uniform(-0.1, 0.1, (1, 48, 3)).astype(np.float32)

@@ -41,3 +41,23 @@ def test_bad_shapes_raise():
         enc(points[:, :20], features[:, :20])
     with pytest.raises(ValueError, match="`features` must have shape"):
         enc(points, features[..., :3])
+
+
+def test_normals_input_variant():
+    """With ``normals=True`` the object points' normals change the features (and get gradient);
+    without them the encoder refuses; a plain encoder ignores them."""
+    torch.manual_seed(0)
+    enc = PointEncoder(16, 8, hidden=32, global_dim=32, normals=True)
+    points, features = random_obs(2, 16, 8)
+    normals = torch.nn.functional.normalize(torch.randn(2, 16, 3), dim=-1)
+    out = enc(points, features, normals)
+    assert out.shape == (2, 16, 64)
+    assert not torch.allclose(out, enc(points, features, -normals), atol=1e-3)
+    out.sum().backward()
+    assert enc.local[0].weight.grad[:, 7:].abs().sum() > 0  # the normal columns learn
+    with pytest.raises(ValueError, match="normals"):
+        enc(points, features)
+    with pytest.raises(ValueError, match="`normals` must have shape"):
+        enc(points, features, normals[:, :8])
+    plain = PointEncoder(16, 8, hidden=32, global_dim=32)
+    assert torch.equal(plain(points, features), plain(points, features, normals))

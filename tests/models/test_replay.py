@@ -64,11 +64,12 @@ def test_fifo_wraps_around():
 
 def test_bytes_per_transition_and_capacity_estimate():
     buf = ReplayBuffer(3, 128, 128)
-    # two float16 clouds + action, reward, flags + the two relabelling poses and the episode link
-    assert buf.bytes_per_transition == 2 * 256 * 7 * 2 + 4 + 12 + 4 + 2 + 2 * 48 + 1 + 4
+    # two float16 clouds with their object normals + action, reward, flags + the two relabelling
+    # poses and the episode link
+    assert buf.bytes_per_transition == 2 * (256 * 7 + 128 * 3) * 2 + 4 + 12 + 4 + 2 + 2 * 48 + 1 + 4
     allocated = sum(getattr(buf, k).nbytes for k in ReplayBuffer._ARRAYS)
     assert allocated == 3 * buf.bytes_per_transition
-    assert 200_000 * buf.bytes_per_transition < 1.5 * 2**30  # 200k transitions at N=256: ~1.4 GB
+    assert 200_000 * buf.bytes_per_transition < 1.7 * 2**30  # 200k transitions at N=256: ~1.6 GiB
 
 
 def test_rejects_bad_input():
@@ -101,11 +102,11 @@ def test_yaw90_turns_points_flows_and_motion_alike():
     buf = ReplayBuffer(4, 4, 4)
     t = transition(rng)
     t["motion"] = np.array([1.0, 0.5, -0.2], np.float32)
-    buf.add(**t)
+    buf.add(**t, normals=rng.normal(size=(4, 3)), next_normals=rng.normal(size=(4, 3)))
     batch = buf.sample(1)
     turned = rotate_yaw90(batch, torch.tensor([1]))  # +90° about z: (x, y, z) -> (-y, x, z)
     np.testing.assert_array_equal(turned.motion[0].numpy(), np.float32([-0.5, 1.0, -0.2]))
-    for name in ("points", "next_points"):
+    for name in ("points", "next_points", "normals", "next_normals"):
         p, q = getattr(batch, name)[0], getattr(turned, name)[0]
         np.testing.assert_allclose(
             q.numpy(), torch.stack([-p[:, 1], p[:, 0], p[:, 2]], -1).numpy(), atol=1e-7
@@ -265,3 +266,19 @@ def test_relabel_links_survive_save_and_load(tmp_path):
     np.testing.assert_array_equal(back.achieved_T, buf.achieved_T)
     a, b = buf.sample(16, relabel_future=0.5), back.sample(16, relabel_future=0.5)
     np.testing.assert_array_equal(a.next_features.numpy(), b.next_features.numpy())
+
+
+def test_normals_are_stored_for_both_observations():
+    rng = np.random.default_rng(11)
+    buf = ReplayBuffer(8, 4, 4)
+    t = transition(rng, e=3)
+    normals, next_normals = rng.normal(size=(2, 3, 4, 3)).astype(np.float32)
+    buf.add(**t, normals=normals, next_normals=next_normals)
+    np.testing.assert_allclose(buf.normals[:3], normals, atol=2e-3)  # float16
+    np.testing.assert_allclose(buf.next_normals[:3], next_normals, atol=2e-3)
+    buf.add(**transition(rng))  # without normals: zeros, never the previous occupant's
+    np.testing.assert_array_equal(buf.normals[3], 0.0)
+    batch = buf.sample(5)
+    assert batch.normals.shape == (5, 4, 3) and batch.next_normals.dtype == torch.float32
+    with pytest.raises(ValueError, match="`normals` must have shape"):
+        buf.add(**transition(rng), normals=np.zeros((5, 3)))
