@@ -114,13 +114,13 @@ def search_episode(env, propose, seed: int, perturb_m: float = 0.0) -> dict:
     while True:
         snapshot = env.get_sim_state()
         candidates = propose(obs)
+        before = float(np.linalg.norm(obs["features"][: len(obs["normals"]), 1:], axis=1).mean())
         best, best_d, best_exact = candidates[0], np.inf, np.inf
         for action in candidates:
             d = try_push(env, snapshot, action, 0.0, rng)
             judged = d
             if perturb_m > 0:
                 judged = try_push(env, snapshot, action, perturb_m, rng)
-                before = float(np.linalg.norm(obs["features"][: len(obs["normals"]), 1:], axis=1).mean())
                 pairs.append((before, d, judged))
             if judged < best_d:
                 best, best_d, best_exact = action, judged, d

@@ -338,8 +338,9 @@ class ReplayBuffer:
         ``cols`` holds the batch's float32 ``points``/``features``/``next_points``/``next_features``
         (B, N, ·), ``reward`` (B,) and ``terminated`` (B,). The new reward is ``−mean ‖φ'‖`` over the
         next observation's object points (the env averages over the whole surface: a sampling
-        difference of a few per cent); an episode that ended by failure (the object left the bin)
-        stays terminated, any other is terminated exactly when the new goal is reached.
+        difference of a few per cent), and a transition is terminated exactly when it reaches the new
+        goal. (A transition that ended its episode, by success or by the object leaving the bin, has
+        only itself as future, so it always reaches its relabelled goal.)
         """
         new_goal = np.zeros((len(slots), 4, 4), dtype=np.float64)
         new_goal[:, :3] = self.achieved_T[self.future_slots(slots)]
@@ -355,9 +356,8 @@ class ReplayBuffer:
             moved = q @ rel[:, :3, :3].transpose(0, 2, 1) + rel[:, None, :3, 3]
             cols[feat][rows, :n, 1:] = (moved - p).astype(np.float32)
         distance = np.linalg.norm(cols["next_features"][rows, :n, 1:], axis=-1).mean(axis=1)
-        failed = cols["terminated"][rows] & (cols["reward"][rows] <= -self.success_threshold)
         cols["reward"][rows] = -distance
-        cols["terminated"][rows] = failed | (distance < self.success_threshold)
+        cols["terminated"][rows] = distance < self.success_threshold
 
     _ARRAYS = (
         "points",

@@ -196,8 +196,6 @@ def test_hindsight_relabel_gives_the_flow_to_a_later_achieved_pose():
     for t in range(5):  # two envs interleaved, as the trainer adds them
         rows = [ep[t] for ep in (ep_a, ep_b) if t < len(ep)]
         stack = {k: np.stack([np.asarray(r[k]) for r in rows]) for k in rows[0]}
-        if len(rows) == 1:  # env b's episode ended: its stream is done, a adds alone as stream 0
-            stack = {k: v[:1] for k, v in stack.items()}
         buf.add(**stack)
     assert len(buf) == 9
     seen_future, seen_now = 0, 0
@@ -230,7 +228,7 @@ def test_hindsight_relabel_gives_the_flow_to_a_later_achieved_pose():
     assert seen_now > 0 and seen_future > 0  # both the transition's own outcome and later ones
 
 
-def test_relabel_keeps_failures_terminated_and_off_keeps_the_batch():
+def test_relabelled_episode_end_reaches_its_own_pose_and_off_keeps_the_batch():
     rng = np.random.default_rng(8)
     n_obj = 8
     local = rng.uniform(-0.03, 0.03, (n_obj, 3))
@@ -242,7 +240,10 @@ def test_relabel_keeps_failures_terminated_and_off_keeps_the_batch():
         buf.add(**row)
     batch = buf.sample(64, relabel_future=1.0)
     last = np.isclose(batch.points[:, 0, 0].numpy(), ep[-1]["points"][0, 0], atol=2e-4)
+    # the last transition's only future is itself: its goal becomes the pose it reached
     assert last.any() and (batch.terminated[last] == 1.0).all()
+    assert np.allclose(batch.reward[last].numpy(), 0.0, atol=1e-3)
+    assert np.allclose(batch.next_features[last][:, :n_obj, 1:].numpy(), 0.0, atol=1e-3)
     plain = buf.sample(64)
     rewards = {round(float(r["reward"]), 4) for r in ep}
     assert {round(float(r), 4) for r in plain.reward} <= rewards
