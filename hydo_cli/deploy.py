@@ -157,7 +157,8 @@ def deploy(
     """
     if ctx.invoked_subcommand is not None:
         return
-    from robot.loop import DeployConfig, Deployment, summary_lines, write_summary
+    from robot.loop import DeployConfig, Deployment
+    from robot.report import summary_lines, write_summary
 
     if model is None:
         raise typer.BadParameter(
@@ -235,8 +236,8 @@ def capture_background_cmd(
 
       hydo deploy capture-background --robot sim --out background.npz
     """
-    from robot.cameras import open_cameras
     from robot.cell import load_cell
+    from robot.connect import open_cameras
     from robot.perception import capture_background
 
     c = load_cell(cell)
@@ -282,8 +283,8 @@ def capture_goal_cmd(
 
       hydo deploy capture-goal --robot panda --cell cell.yaml --offset 0.10,0.0,30 --out goal.npz
     """
-    from robot.cameras import open_cameras
     from robot.cell import load_cell
+    from robot.connect import open_cameras
     from robot.perception import Background, capture_background, segment
     from robot.registration import Goal, goal_from_offset
 

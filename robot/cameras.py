@@ -276,14 +276,3 @@ class ReplayCamera(Camera):
 
     def __len__(self) -> int:
         return len(self._files)
-
-
-def open_cameras(cell, kind: str, world=None, replay: str | Path | None = None) -> CameraSet:
-    """The cameras of ``cell`` for ``--robot kind`` (not yet opened: use ``with``)."""
-    if replay is not None:
-        return CameraSet([ReplayCamera(spec, replay) for spec in cell.cameras])
-    if kind == "sim":
-        from robot.twin import TwinCamera
-
-        return CameraSet([TwinCamera(world, spec, i) for i, spec in enumerate(cell.cameras)])
-    return CameraSet([RealSenseCamera(spec, cell.perception.warmup_frames) for spec in cell.cameras])

@@ -6,7 +6,7 @@ Ctrl-C). ``execute(plan)`` sends a checked :class:`robot.safety.Plan` one comman
 returns what was actually commanded with one typed :class:`Outcome`, whatever the library's way of
 failing (libfranka raises, franky's reactions return normally, panda-python returns ``False``)::
 
-    with make_executor("sim", cell, log=log, world=world) as robot:
+    with make_executor("sim", cell, log=log, world=world) as robot:   # robot.connect
         result = robot.execute(plan)          # ExecutionResult
         if result.outcome is Outcome.reflex: ...
 
@@ -14,8 +14,10 @@ Every command is written to the session log (and fsynced) *before* it is sent: a
 SIGKILL the log's last line is the last command the robot may have received.
 
 Subclasses implement ``connect``, ``disconnect``, ``stop``, ``recover``, ``robot_mode``,
-``fingertip`` and ``_move`` (one straight fingertip move, or the joint move home). The factory
-:func:`make_executor` imports ``panda_py`` / ``franky`` only when that robot is selected.
+``fingertip`` and ``_move`` (one straight fingertip move, or the joint move home). The executors
+are built by ``robot.connect.make_executor``, which imports ``panda_py`` / ``franky`` only when that
+robot is selected; libfranka's error vocabulary (recoverable errors, operator actions) lives in
+``robot.libfranka``.
 """
 
 from __future__ import annotations
@@ -51,34 +53,6 @@ class RobotMode(str, enum.Enum):
     automatic_error_recovery = "automatic_error_recovery"
     other = "other"
     disconnected = "disconnected"
-
-
-#: libfranka errors hydo recovers from automatically (at most once per primitive, three times per
-#: episode): reflexes, communication hiccups and motion-generator discontinuities.
-RECOVERABLE_ERRORS = frozenset(
-    {
-        "cartesian_reflex",
-        "joint_reflex",
-        "communication_constraints_violation",
-        "cartesian_motion_generator_acceleration_discontinuity",
-        "cartesian_motion_generator_joint_acceleration_discontinuity",
-        "cartesian_motion_generator_joint_velocity_discontinuity",
-        "cartesian_motion_generator_velocity_discontinuity",
-        "controller_torque_discontinuity",
-        "joint_motion_generator_acceleration_discontinuity",
-        "joint_motion_generator_velocity_discontinuity",
-    }
-)
-#: What the person must do for the errors that stop the run (anything not recoverable).
-OPERATOR_ACTIONS = {
-    "power_limit_violation": "check the arm's power supply and payload, then unlock the brakes in Desk",
-    "joint_position_limits_violation": "guide the arm away from its joint limit in Desk, then re-run",
-    "cartesian_position_limits_violation": "guide the arm back into its workspace in Desk, then re-run",
-    "self_collision_avoidance_violation": "guide the arm out of self-collision in Desk, then re-run",
-    "user_stop": "release the external activation/stop device once the cell is safe, then re-run",
-    "tau_j_range_violation": "check payload and tool settings in Desk, then re-run",
-    "instability_detected": "check the tool and payload settings in Desk, then re-run",
-}
 
 
 CONTACT_KINDS = ("contact", "push")
@@ -297,40 +271,3 @@ class Executor(ABC):
             return self.robot_mode()
         except Exception:
             return RobotMode.disconnected
-
-
-def classify_errors(errors: tuple[str, ...] | list[str]) -> Outcome:
-    """``reflex`` when every active error is recoverable, ``critical`` otherwise (and for none)."""
-    errors = tuple(errors)
-    if errors and all(e in RECOVERABLE_ERRORS for e in errors):
-        return Outcome.reflex
-    return Outcome.critical
-
-
-def operator_action(errors) -> str:
-    """One sentence telling the person what to do about ``errors``."""
-    for e in errors:
-        if e in OPERATOR_ACTIONS:
-            return OPERATOR_ACTIONS[e]
-    return "inspect the arm and clear the error in Desk, then re-run"
-
-
-def make_executor(
-    kind: str, cell, log=None, world=None, allow_no_realtime: bool = False, speed_scale: float = 1.0
-) -> Executor:
-    """The executor for ``--robot kind``; robot libraries are imported only here, only when chosen."""
-    if kind == "sim":
-        from robot.twin import TwinExecutor
-
-        if world is None:
-            raise ValueError("the sim executor needs the twin world it drives")
-        return TwinExecutor(world, cell, log=log, speed_scale=speed_scale)
-    if kind == "panda":
-        from robot.panda import PandaExecutor
-
-        return PandaExecutor(cell, log=log, allow_no_realtime=allow_no_realtime, speed_scale=speed_scale)
-    if kind == "fr3":
-        from robot.fr3 import FR3Executor
-
-        return FR3Executor(cell, log=log, allow_no_realtime=allow_no_realtime, speed_scale=speed_scale)
-    raise ValueError(f"`--robot` must be one of ['panda', 'fr3', 'sim']. Got {kind!r}.")

@@ -23,8 +23,8 @@ import numpy as np
 
 from robot.arm import R_DOWN
 from robot.errors import RobotConnectionError
-from robot.executor import Command, Executor, MoveResult, Outcome, RobotMode, classify_errors
-from robot.panda import error_names, fingertip_to_ee
+from robot.executor import Command, Executor, MoveResult, Outcome, RobotMode
+from robot.libfranka import classify_errors, error_names, fingertip_to_ee
 
 GLOBAL_DYNAMICS_FACTOR = 0.1  # franky's examples use 0.05-0.1; every move scales below this
 JOINT_MOVE_FACTOR = 0.5  # of the global factor, for the joint move home

@@ -33,35 +33,36 @@ a real arm stops the run there, the twin ends the episode and resets its arm for
 from __future__ import annotations
 
 import contextlib
-import json
 import platform
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from robot.cameras import CameraSet, ReplayExhausted, open_cameras
+from robot.cameras import CameraSet, ReplayExhausted
 from robot.cell import load_cell
+from robot.connect import make_executor, open_cameras
 from robot.errors import (
     CameraError,
     InputError,
     PerceptionError,
     RecoveryLimitError,
     RegistrationError,
-    RobotConnectionError,
     RobotError,
-    RobotFaultError,
     UnreachableError,
 )
-from robot.executor import Outcome, RobotMode, make_executor, operator_action
+from robot.executor import Outcome
 from robot.onnx_policy import OnnxPolicy
 from robot.perception import Background, capture_background, observation, segment
+from robot.recovery import handle_failure
 from robot.registration import Goal, check_registration, goal_from_offset, register
+from robot.report import EpisodeResult, SessionResult, StepRecord
 from robot.safety import RecoveryBudget, SafetyGate, check_realtime
 from robot.session_log import SessionLog
-from sim.contract import MAX_PRIMITIVES, SUCCESS_THRESHOLD_M, transform_points
-from sim.primitive import PrimitiveRejected
+from robot.twin_metrics import mask_iou_vs_truth, registration_error, true_distance
+from sim.contract import MAX_PRIMITIVES, SUCCESS_THRESHOLD_M
+from sim.primitive import PrimitiveRejected, feasibility_mask
 
 ROBOTS = ("panda", "fr3", "sim")
 #: Refusals: bad input that stops nothing physical. Robot and camera failures are never refusals.
@@ -96,77 +97,6 @@ class DeployConfig:
         if self.on_refusal is not None:
             return self.on_refusal
         return "next-episode" if self.robot == "sim" and self.replay is None else "stop"
-
-
-@dataclass
-class StepRecord:
-    episode: int
-    step: int
-    distance: float  # m, measured by registration
-    rmse: float
-    inliers: float
-    n_object_points: int
-    outcome: str = ""  # the plan's outcome, "dry-run", "success" or the refusal class
-    seconds: float = 0.0  # wall time of the whole step
-    perception_s: float = 0.0
-    registration_s: float = 0.0
-    policy_s: float = 0.0
-    execution_s: float = 0.0
-    iou: float | None = None  # twin: mask IoU vs ground truth (pooled over cameras)
-    registration_error: float | None = None  # twin: ADD-S (m) of the estimated vs true transform
-    true_distance: float | None = None  # twin: mean goal flow from the true poses (training's)
-
-
-@dataclass
-class EpisodeResult:
-    episode: int
-    success: bool  # measured (registration distance < 3 cm)
-    steps: int  # primitives executed (or planned, in a dry run)
-    distance: float | None  # last measured distance, m
-    reason: str = ""  # why it ended without success
-    object: str = ""
-    true_success: bool | None = None  # twin: from the true poses
-    true_distance: float | None = None
-
-
-@dataclass
-class SessionResult:
-    folder: Path
-    episodes: list[EpisodeResult] = field(default_factory=list)
-    steps: list[StepRecord] = field(default_factory=list)
-    commands_sent: int = 0
-    force_stops: int = 0  # contact-force stops (reaction_fired): an outcome of a step
-    reflexes: int = 0  # robot reflexes, each recovered once or ending the run
-    reflex_limit_episodes: int = 0  # twin: episodes ended by the recovery limits (a real arm stops)
-
-    def summary(self) -> dict:
-        def mean(xs):
-            xs = [x for x in xs if x is not None]
-            return float(np.mean(xs)) if xs else None
-
-        eps = self.episodes
-        # time per step: the steps that planned a primitive (not the episodes' final observations)
-        timed = [s for s in self.steps if s.policy_s > 0]
-        return {
-            "episodes": len(eps),
-            "success_rate": mean([float(e.success) for e in eps]),
-            "true_success_rate": mean(
-                [None if e.true_success is None else float(e.true_success) for e in eps]
-            ),
-            "primitives": sum(e.steps for e in eps),
-            "mean_iou": mean([s.iou for s in self.steps]),
-            "mean_registration_error_m": mean([s.registration_error for s in self.steps]),
-            "mean_registration_rmse_m": mean([s.rmse for s in self.steps]),
-            "mean_step_s": mean([s.seconds for s in timed]),
-            "mean_perception_s": mean([s.perception_s for s in self.steps]),
-            "mean_registration_s": mean([s.registration_s for s in self.steps]),
-            "mean_policy_s": mean([s.policy_s for s in timed]),
-            "mean_execution_s": mean([s.execution_s for s in timed if s.execution_s > 0]),
-            "commands_sent": self.commands_sent,
-            "force_stops": self.force_stops,
-            "reflexes": self.reflexes,
-            "reflex_limit_episodes": self.reflex_limit_episodes,
-        }
 
 
 def default_session_folder(robot: str) -> Path:
@@ -284,7 +214,13 @@ class Deployment:
         feats[: p.n_obj, 0] = 1.0
         normals = np.tile(np.float32([0.0, 0.0, 1.0]), (p.n_obj, 1))
         t = time.perf_counter()
-        p.act(pts, feats, np.random.default_rng(0), normals=normals)
+        p.act(
+            pts,
+            feats,
+            np.random.default_rng(0),
+            normals=normals,
+            feasible=feasibility_mask(pts[None], normals[None]),
+        )
         return time.perf_counter() - t
 
     # --- the run ------------------------------------------------------------------------------------
@@ -436,8 +372,12 @@ class Deployment:
                     obs["features"],
                     self.rng,
                     normals=obs["normals"],
-                    workspace=self.cell.workspace,
-                    bin_box=(self.cell.bin_low, self.cell.bin_high),
+                    feasible=feasibility_mask(
+                        obs["points"][None],
+                        obs["normals"][None],
+                        self.cell.workspace,
+                        (self.cell.bin_low, self.cell.bin_high),
+                    ),
                 )
                 rec.policy_s = time.perf_counter() - t0
                 self.gate.check_action(index, motion, self.policy.n_obj)
@@ -488,7 +428,7 @@ class Deployment:
             primitives += 1
             if result.outcome is not Outcome.ok:
                 try:
-                    self._handle_failure(result, robot)
+                    handle_failure(result, robot, self.gate, self.budget, self.log, self.result, self.print)
                 except RecoveryLimitError as e:
                     if self.world is None or self.cfg.resolved_on_refusal() == "stop":
                         raise  # a real arm (or --on-refusal stop): the run stops, a person inspects the cell
@@ -520,7 +460,7 @@ class Deployment:
     def _end_episode(self, ep, success, steps, distance, reason, obj_name) -> EpisodeResult:
         res = EpisodeResult(ep, bool(success), steps, distance, reason, obj_name)
         if self.world is not None and self._true_goal_T is not None:
-            d = self._true_distance()
+            d = true_distance(self.world, self._true_goal_T)
             res.true_distance, res.true_success = d, bool(d < SUCCESS_THRESHOLD_M)
         self.log.event("episode_end", **asdict(res))
         dist = "n/a" if distance is None else f"{distance * 100:.1f} cm"
@@ -573,57 +513,6 @@ class Deployment:
             arrays["command_targets"] = np.array([c.target for c in plan.commands])
         self.log.save_step(ep, step, frames, **arrays)
 
-    # --- recovery -----------------------------------------------------------------------------------
-    def _handle_failure(self, result, robot) -> None:
-        """Stop, recover or retract after a plan that did not end ``ok`` (robot-safety.md's rules)."""
-        where = result.failed.label if result.failed is not None else "?"
-        if result.outcome is Outcome.comm_lost:
-            raise RobotConnectionError(
-                f"connection to the {robot.name} robot lost during '{where}' ({result.message}); not reconnecting: "
-                f"check the network and the arm, then re-run (the log's last command is '{where}')"
-            )
-        if result.outcome is Outcome.critical:
-            raise RobotFaultError(
-                f"the {robot.name} robot stopped with {list(result.errors) or result.robot_mode} during '{where}': "
-                f"{operator_action(result.errors)}. Not recovered automatically."
-            )
-        if result.outcome is Outcome.reflex:
-            self.result.reflexes += 1
-            mode = robot.robot_mode()
-            errors = tuple(result.errors) or robot.current_errors()
-            self.budget.authorise(mode, errors, where)  # raises RobotFaultError when not allowed
-            self.log.event(
-                "recovery",
-                mode=mode.value,
-                errors=list(errors),
-                during=where,
-                recoveries_this_episode=self.budget.episode,
-            )
-            self.print(f"reflex ({', '.join(errors) or mode.value}) during '{where}': recovering")
-            if mode is RobotMode.reflex or errors:  # decided from the mode: flags may clear while it latches
-                robot.recover()
-            if robot.robot_mode() is RobotMode.reflex:
-                robot.recover()
-                if robot.robot_mode() is RobotMode.reflex:
-                    raise RobotFaultError(
-                        "the robot stays in reflex mode after recovery: clear it in Desk, then re-run"
-                    )
-        elif result.outcome is Outcome.reaction_fired:
-            self.result.force_stops += 1
-            self.log.event("force_stop", during=where, peak_force_n=result.peak_force)
-            self.print(f"contact-force stop during '{where}' ({result.message}): retracting")
-        # Never resume the old waypoints: retract along a checked path, then re-observe and re-plan.
-        retract = self.gate.plan_retract(robot.fingertip(), robot.joints())
-        self.log.event("retract", commands=[c.to_json() for c in retract.commands])
-        r = robot.execute(retract)
-        self.log.event("retract_outcome", **r.to_json())
-        if r.outcome is Outcome.reflex:
-            self._handle_failure(r, robot)  # counts against the same budget; retracts again
-        elif r.outcome is not Outcome.ok:
-            raise RobotFaultError(
-                f"the retract after '{where}' ended '{r.outcome.value}' ({r.message}): guide the arm home"
-            )
-
     # --- the twin -----------------------------------------------------------------------------------
     def _twin_episode(self, ep: int, cameras, assets) -> str:
         """Place a start (and, without --goal, a goal captured through the cameras) in the twin."""
@@ -656,70 +545,12 @@ class Deployment:
         )
         return asset.name
 
-    def _true_distance(self) -> float:
-        w = self.world
-        T_obj = w.object_T()
-        surf = transform_points(T_obj, w.asset.surface_points)
-        flow = transform_points(self._true_goal_T @ np.linalg.inv(T_obj), surf) - surf
-        return float(np.linalg.norm(flow, axis=1).mean())
-
     def _twin_metrics(self, rec: StepRecord, seg, reg) -> None:
+        """Twin only: the step's mask IoU, registration error and true distance (``robot.twin_metrics``)."""
         w = self.world
         if w is None:
             return
-        from robot.registration import adds_error
-        from sim.render import mask_iou
-
-        true = np.stack([w.true_mask(i) for i in range(len(self.cell.cameras))])
-        rec.iou = mask_iou(np.stack(seg.masks), true)
+        rec.iou = mask_iou_vs_truth(w, seg.masks)
         if self._true_goal_T is not None:
-            T_obj = w.object_T()
-            T_true = self._true_goal_T @ np.linalg.inv(T_obj)
-            surf = transform_points(T_obj, w.asset.surface_points)
-            rec.registration_error = adds_error(reg.T, T_true, surf)
-            rec.true_distance = self._true_distance()
-
-
-def summary_lines(res: SessionResult) -> list[tuple[str, str]]:
-    """(name, value) rows of the final table."""
-    s = res.summary()
-
-    def pct(v):
-        return "n/a" if v is None else f"{v:.0%}"
-
-    def ms(v):
-        return "n/a" if v is None else f"{v * 1000:.0f} ms"
-
-    rows = [
-        ("episodes", str(s["episodes"])),
-        ("success rate (registration)", pct(s["success_rate"])),
-    ]
-    if s["true_success_rate"] is not None:
-        rows.append(("success rate (twin, true poses)", pct(s["true_success_rate"])))
-    rows.append(("primitives", str(s["primitives"])))
-    if s["mean_iou"] is not None:
-        rows.append(("segmentation IoU (twin)", f"{s['mean_iou']:.3f}"))
-    if s["mean_registration_error_m"] is not None:
-        rows.append(("registration error ADD-S (twin)", f"{s['mean_registration_error_m'] * 1000:.1f} mm"))
-    if s["mean_registration_rmse_m"] is not None:
-        rows.append(("registration inlier RMS", f"{s['mean_registration_rmse_m'] * 1000:.1f} mm"))
-    rows += [
-        ("time per step", "n/a" if s["mean_step_s"] is None else f"{s['mean_step_s']:.2f} s"),
-        ("  perception", ms(s["mean_perception_s"])),
-        ("  registration", ms(s["mean_registration_s"])),
-        ("  policy (onnxruntime)", ms(s["mean_policy_s"])),
-        ("  execution", "n/a" if s["mean_execution_s"] is None else f"{s['mean_execution_s']:.2f} s"),
-        ("motion commands sent", str(s["commands_sent"])),
-        ("contact-force stops", str(s["force_stops"])),
-        ("reflexes", str(s["reflexes"])),
-    ]
-    if s["reflex_limit_episodes"]:
-        rows.append(("episodes ended by the reflex limit (twin)", str(s["reflex_limit_episodes"])))
-    rows += [
-        ("session folder", str(res.folder)),
-    ]
-    return rows
-
-
-def write_summary(res: SessionResult) -> None:
-    (res.folder / "summary.json").write_text(json.dumps(res.summary(), indent=2))
+            rec.registration_error = registration_error(w, reg.T, self._true_goal_T)
+            rec.true_distance = true_distance(w, self._true_goal_T)

@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from robot.arm import R_DOWN, quat_from_matrix, rot_z
+from robot.arm import R_DOWN, quat_from_matrix
 from robot.errors import RobotConnectionError
-from robot.executor import Command, Executor, MoveResult, Outcome, RobotMode, classify_errors
+from robot.executor import Command, Executor, MoveResult, Outcome, RobotMode
+from robot.libfranka import classify_errors, error_names, fingertip_to_ee
 
 CONTROL_HZ = 100.0  # reference updates and force checks per second (the torque loop runs at 1 kHz)
 SETTLE_MAX_S = 1.0  # after the reference arrives, wait this long for the fingertip to follow
@@ -50,26 +51,9 @@ def _import_panda_py():
     return panda_py
 
 
-def error_names(errors) -> tuple[str, ...]:
-    """Names of the active flags of a libfranka ``Errors`` object."""
-    if errors is None:
-        return ()
-    return tuple(
-        sorted(n for n in dir(errors) if not n.startswith("_") and getattr(errors, n, False) is True)
-    )
-
-
 def mode_of(state) -> RobotMode:
     name = getattr(state.robot_mode, "name", str(state.robot_mode).split(".")[-1])
     return MODES.get(name, RobotMode.other)
-
-
-def fingertip_to_ee(cell, F_T_EE: np.ndarray) -> np.ndarray:
-    """(4, 4) ``T_tip^-1 · T_EE`` in the flange frame: right-multiply a fingertip pose to get the EE pose."""
-    F_T_tip = np.eye(4)
-    F_T_tip[:3, :3] = rot_z(cell.hand_yaw)
-    F_T_tip[:3, 3] = cell.fingertip_offset
-    return np.linalg.inv(F_T_tip) @ F_T_EE
 
 
 class PandaExecutor(Executor):

@@ -2,7 +2,7 @@
 
 Per step (``segment``): check every depth image (finite, the background's shape; zeros are holes,
 NaN/inf are refused naming the camera), check the background still matches (a bumped camera is
-refused: re-capture the background), then ``sim.render.clouds_from_depth`` — the same background
+refused: re-capture the background), then ``sim.depth.clouds_from_depth`` — the same background
 subtraction, back-projection, fusion and PCA normals as the training renderer — with each camera's
 cell intrinsics and extrinsics, background points cropped to the bin box, object points cropped to
 the bin's volume. Too few object points is refused (empty or tiny mask). ``observation`` resamples
@@ -25,7 +25,7 @@ import numpy as np
 
 from robot.errors import PerceptionError
 from sim.contract import build_observation
-from sim.render import background_from_frames, clouds_from_depth, valid_depth
+from sim.depth import background_from_frames, clouds_from_depth, valid_depth
 
 BIN_MARGIN_M = 0.01  # background crop: the bin's inner box grown by this (walls' inner faces kept)
 OBJECT_HEIGHT_MAX_M = 0.30  # object points above the floor by more than this are not the object

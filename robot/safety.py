@@ -32,7 +32,8 @@ from robot.errors import (
     RecoveryLimitError,
     RobotFaultError,
 )
-from robot.executor import RECOVERABLE_ERRORS, Command, RobotMode
+from robot.executor import Command, RobotMode
+from robot.libfranka import RECOVERABLE_ERRORS
 from sim.contract import FEATURE_DIM
 from sim.primitive import N_WAYPOINTS, PUSH_SEGMENTS, PrimitiveRejected, check_plan, primitive_waypoints
 

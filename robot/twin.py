@@ -35,8 +35,9 @@ from robot.arm import JOINTS, R_DOWN, ArmKinematics, add_arm, orientation_error 
 from robot.cameras import Camera, Frame  # noqa: E402
 from robot.executor import Command, Executor, MoveResult, Outcome, RobotMode  # noqa: E402
 from sim.contract import pose_matrix  # noqa: E402
+from sim.goals import sample_episode as sim_sample_episode  # noqa: E402
 from sim.objects import ObjectAsset  # noqa: E402
-from sim.scene import _add_object_body  # noqa: E402  (the training scene's object body: one definition)
+from sim.scene import add_object_body  # noqa: E402  (the training scene's object body: one definition)
 
 TIMESTEP_S = 0.004
 WALL_THICKNESS_M = 0.01
@@ -119,7 +120,7 @@ class TwinWorld:
         binb.add_geom(name="bin_wall_ypos", pos=[0, hy + t, h / 2], size=[hx + 2 * t, t, h / 2], **box)
         binb.add_geom(name="bin_wall_yneg", pos=[0, -hy - t, h / 2], size=[hx + 2 * t, t, h / 2], **box)
         add_arm(spec, self.robot_type, cell.fingertip_offset, cell.hand_yaw)
-        _add_object_body(spec, "object", asset, rgba=[0.85, 0.35, 0.2, 1.0])
+        add_object_body(spec, "object", asset, rgba=[0.85, 0.35, 0.2, 1.0])
         weld = spec.add_equality(name="object_weld")
         weld.type = mujoco.mjtEq.mjEQ_WELD
         weld.objtype = mujoco.mjtObj.mjOBJ_BODY
@@ -493,31 +494,11 @@ class TwinExecutor(Executor):
 def sample_episode(world: TwinWorld, assets, goal_mode: str, rng: np.random.Generator):
     """A start and a goal like the training env's ``reset`` (``sim.env.BinEnv``), in the base frame.
 
-    Returns ``(asset, (start_pos, start_quat), (goal_pos, goal_quat))``: a random object, one of its
-    stable poses at a random yaw and bin position; planar goals translate it (same stable pose and
-    yaw), 6d goals pick another stable pose, yaw and position. Goals closer than the env's minimum
-    distance are re-drawn.
+    Returns ``(asset, (start_pos, start_quat), (goal_pos, goal_quat))``: the training env's episode
+    (``sim.goals.sample_episode``: a random object, one of its stable poses at a random yaw and bin
+    position, a ``planar`` or ``6d`` goal at least ``MIN_GOAL_DISTANCE_M`` away) moved from the bin
+    frame to the cell's bin.
     """
-    from sim.contract import transform_points
-    from sim.env import MIN_GOAL_DISTANCE_M
-    from sim.goals import sample_placement, stable_poses
-
-    asset = assets[rng.integers(len(assets))]
-    poses = stable_poses(asset)
+    asset, (pos, quat), (gpos, gquat) = sim_sample_episode(assets, goal_mode, rng)
     offset = world.cell.bin_center
-    for _ in range(100):
-        start = poses[rng.integers(len(poses))]
-        yaw = rng.uniform(-np.pi, np.pi)
-        pos, quat = sample_placement(asset, start, rng, yaw=yaw)
-        if goal_mode == "planar":
-            gpos, gquat = sample_placement(asset, start, rng, yaw=yaw)
-        else:
-            gpos, gquat = sample_placement(asset, poses[rng.integers(len(poses))], rng)
-        d = np.linalg.norm(
-            transform_points(pose_matrix(gpos, gquat), asset.surface_points)
-            - transform_points(pose_matrix(pos, quat), asset.surface_points),
-            axis=1,
-        ).mean()
-        if d > MIN_GOAL_DISTANCE_M:
-            break
     return asset, (pos + offset, quat), (gpos + offset, gquat)

@@ -45,7 +45,14 @@ from sim.contract import (
     reward_and_success,
     transform_points,
 )
-from sim.goals import GOAL_MODES, footprint_radius, sample_placement, stable_poses
+from sim.goals import (
+    GOAL_MODES,
+    footprint_radius,
+    sample_object,
+    sample_placement,
+    sample_start_and_goal,
+    stable_poses,
+)
 from sim.objects import ObjectAsset, load_objects
 from sim.observe import MeshObserver
 from sim.primitive import SIM_WORKSPACE, PrimitiveRejected, check_plan, primitive_waypoints
@@ -53,7 +60,6 @@ from sim.scene import BinScene
 from sim.tasks import TaskStep, get_task
 
 CLUTTER_CHOICES = (0, 1, 2, 5)
-MIN_GOAL_DISTANCE_M = 0.05  # a goal must start further than the success threshold (with margin)
 
 
 class BinEnv(gym.Env):
@@ -163,29 +169,16 @@ class BinEnv(gym.Env):
             by_name = {a.name: a for a in self.assets}
             asset = by_name[options["object"]]
         else:
-            asset = self.assets[rng.integers(len(self.assets))]
+            asset = sample_object(self.assets, rng)
         clutter = tuple(
             self._clutter_pool[rng.integers(len(self._clutter_pool))] for _ in range(self.n_clutter)
         )
         self.scene = self._get_scene(asset, clutter)
         self.scene.reset()  # full reset: MuJoCo's warm-start state must not leak between episodes
+        # the start and goal: sim.goals, shared with the deploy twin (same draws, same order)
         poses = self._poses[asset.name]
-        for _ in range(100):
-            start = poses[rng.integers(len(poses))]
-            yaw = rng.uniform(-np.pi, np.pi)
-            pos, quat = sample_placement(asset, start, rng, yaw=yaw)
-            if self.goal_mode == "planar":  # same stable pose and yaw: a pure translation
-                gpos, gquat = sample_placement(asset, start, rng, yaw=yaw)
-            else:
-                gpos, gquat = sample_placement(asset, poses[rng.integers(len(poses))], rng)
-            self.T_goal = pose_matrix(gpos, gquat)
-            d = np.linalg.norm(
-                transform_points(self.T_goal, asset.surface_points)
-                - transform_points(pose_matrix(pos, quat), asset.surface_points),
-                axis=1,
-            ).mean()
-            if d > MIN_GOAL_DISTANCE_M:
-                break
+        (pos, quat), (gpos, gquat) = sample_start_and_goal(asset, self.goal_mode, rng, poses)
+        self.T_goal = pose_matrix(gpos, gquat)
         self.scene.set_object_pose(pos, quat)
         if clutter:
             self._place_clutter(rng, pos, footprint_radius(asset, quat))

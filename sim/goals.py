@@ -1,4 +1,4 @@
-"""Stable poses by drop-and-settle, and goal sampling (HACMan's ``planar`` and ``6d`` modes).
+"""Stable poses by drop-and-settle, and episode sampling (HACMan's ``planar`` and ``6d`` goal modes).
 
 A stable pose is stored as ``(z, qw, qx, qy, qz)``: the object origin's height above the bin floor
 (metres) and its orientation. Any yaw about the world z axis and any x, y inside the bin keep it
@@ -8,6 +8,10 @@ Built-in objects use the shipped ``assets/stable_poses.npz`` (regenerate with
 ``python -m sim.goals``); user meshes are computed on first use (with a progress bar) and cached under
 ``$HYDO_CACHE`` (default ``~/.cache/hydo``). Both caches are keyed by a hash of the object's geometry,
 so a changed mesh never reuses stale poses.
+
+Episodes (an object, its start and its goal) are drawn here, in one place, for the training env
+(``sim.env.BinEnv.reset``) and the deploy twin (``robot.twin.sample_episode``): :func:`sample_object`,
+then :func:`sample_start_and_goal`, in the bin frame (origin at the centre of the bin floor's top).
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.atomic import atomic_write
+from sim.contract import pose_matrix, transform_points
 from sim.objects import ObjectAsset, builtin_objects
 from sim.primitive import BIN_INNER_SIZE_M
 
@@ -33,6 +38,8 @@ WALL_MARGIN_M = 0.02  # keep sampled object footprints this far from the bin wal
 #: between an object and a wall needs room that the outer 10 cm of the bin does not have.
 PLACEMENT_HALF_M = np.array([0.12, 0.14])
 GOAL_MODES = ("planar", "6d")
+MIN_GOAL_DISTANCE_M = 0.05  # a goal must start further than the success threshold (with margin)
+GOAL_TRIES = 100  # start/goal pairs drawn before the last one is kept, however close
 
 
 def geometry_hash(asset: ObjectAsset) -> str:
@@ -147,8 +154,6 @@ def stable_poses(asset: ObjectAsset) -> np.ndarray:
 
 def footprint_radius(asset: ObjectAsset, quat_wxyz: np.ndarray) -> float:
     """Largest horizontal distance (m) of the object's surface from its origin in orientation ``quat``."""
-    from sim.contract import pose_matrix
-
     R = pose_matrix(np.zeros(3), quat_wxyz)[:3, :3]
     return float(np.linalg.norm((asset.surface_points @ R.T)[:, :2], axis=1).max())
 
@@ -163,6 +168,50 @@ def sample_placement(
     half = np.minimum(np.maximum(BIN_INNER_SIZE_M[:2] / 2 - r - WALL_MARGIN_M, 0.0), PLACEMENT_HALF_M)
     xy = rng.uniform(-half, half)
     return np.array([xy[0], xy[1], pose[0]]), quat
+
+
+def sample_object(assets, rng: np.random.Generator) -> ObjectAsset:
+    """A uniformly random object of ``assets`` (one ``rng.integers`` draw)."""
+    return assets[rng.integers(len(assets))]
+
+
+def sample_start_and_goal(
+    asset: ObjectAsset, goal_mode: str, rng: np.random.Generator, poses: np.ndarray | None = None
+):
+    """A start and a goal of ``asset`` in the bin frame: ``((pos, quat), (goal_pos, goal_quat))``.
+
+    The start is a random stable pose (of ``poses``, default :func:`stable_poses`) at a random yaw and
+    bin position; ``planar`` goals translate it (same stable pose and yaw), ``6d`` goals pick another
+    stable pose, yaw and position. A pair whose goal is within ``MIN_GOAL_DISTANCE_M`` (mean distance
+    of the surface samples) is re-drawn, up to ``GOAL_TRIES`` times (then the last pair is kept).
+    """
+    poses = stable_poses(asset) if poses is None else poses
+    for _ in range(GOAL_TRIES):
+        start = poses[rng.integers(len(poses))]
+        yaw = rng.uniform(-np.pi, np.pi)
+        pos, quat = sample_placement(asset, start, rng, yaw=yaw)
+        if goal_mode == "planar":  # same stable pose and yaw: a pure translation
+            gpos, gquat = sample_placement(asset, start, rng, yaw=yaw)
+        else:
+            gpos, gquat = sample_placement(asset, poses[rng.integers(len(poses))], rng)
+        d = np.linalg.norm(
+            transform_points(pose_matrix(gpos, gquat), asset.surface_points)
+            - transform_points(pose_matrix(pos, quat), asset.surface_points),
+            axis=1,
+        ).mean()
+        if d > MIN_GOAL_DISTANCE_M:
+            break
+    return (pos, quat), (gpos, gquat)
+
+
+def sample_episode(assets, goal_mode: str, rng: np.random.Generator, poses: dict | None = None):
+    """:func:`sample_object`, then :func:`sample_start_and_goal`: ``(asset, start, goal)``, bin frame.
+
+    ``poses``: optional ``{name: stable poses}`` cache.
+    """
+    asset = sample_object(assets, rng)
+    start, goal = sample_start_and_goal(asset, goal_mode, rng, None if poses is None else poses[asset.name])
+    return asset, start, goal
 
 
 def main() -> None:

@@ -81,8 +81,14 @@ def _add_hand_visuals(spec: mujoco.MjSpec) -> None:
     )
 
 
-def _add_object_body(spec, prefix: str, asset: ObjectAsset, rgba, mocap=False) -> None:
-    """Add ``asset`` as a body named ``prefix`` with one mesh geom per convex part."""
+def add_object_body(spec, prefix: str, asset: ObjectAsset, rgba, mocap=False) -> None:
+    """Add ``asset`` as a body named ``prefix`` with one mesh geom per convex part.
+
+    The object's physics (density, friction, convex parts; geom group 0) as the training scene builds
+    it: the deploy twin (``robot.twin``) adds its object with this function too. ``mocap=True`` makes
+    the goal ghost instead (group 4, no collisions, no mass); otherwise the body gets a free joint
+    ``{prefix}_joint``. The body starts at ``(0, 0, -1)``: place it with the scene's pose setters.
+    """
     body = spec.worldbody.add_body(name=prefix, pos=[0, 0, -1.0], mocap=mocap)
     if not mocap:
         body.add_freejoint(name=f"{prefix}_joint")
@@ -131,12 +137,12 @@ def build_model(
     obstacles (bodies ``obstacle{i}``, ``sim.tasks``) + goal ghost."""
     spec = mujoco.MjSpec.from_file(str(ASSETS / "scene.xml"))
     _add_hand_visuals(spec)
-    _add_object_body(spec, "object", asset, rgba=[0.85, 0.35, 0.2, 1.0])
+    add_object_body(spec, "object", asset, rgba=[0.85, 0.35, 0.2, 1.0])
     for i, c in enumerate(clutter):
-        _add_object_body(spec, f"clutter{i}", c, rgba=[0.35, 0.25, 0.15, 1.0])
+        add_object_body(spec, f"clutter{i}", c, rgba=[0.35, 0.25, 0.15, 1.0])
     for i, ob in enumerate(obstacles):
         _add_obstacle_body(spec, f"obstacle{i}", ob)
-    _add_object_body(spec, "goal", asset, rgba=[0.2, 0.8, 0.3, 0.35], mocap=True)
+    add_object_body(spec, "goal", asset, rgba=[0.2, 0.8, 0.3, 0.35], mocap=True)
     return spec.compile()
 
 

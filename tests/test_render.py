@@ -1,5 +1,5 @@
-"""sim.render: the pure depth functions on synthetic images, RenderObserver against MuJoCo's ground
-truth, the env with ``obs="render"``, RGB frames and videos."""
+"""sim.depth, sim.render and sim.video: the pure depth functions on synthetic images, RenderObserver
+against MuJoCo's ground truth, the env with ``obs="render"``, RGB frames and videos."""
 
 import os
 
@@ -12,21 +12,19 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-import sim  # noqa: E402, F401
+import sim.env  # noqa: E402, F401  (registers hydo/Bin-v0)
 from sim.contract import transform_points  # noqa: E402
-from sim.render import (  # noqa: E402
-    RenderObserver,
+from sim.depth import (  # noqa: E402
     background_from_frames,
     backproject,
     clouds_from_depth,
     estimate_normals,
     mask_iou,
     pinhole_intrinsics,
-    render_rgb,
-    segmentation_iou,
     subtract_background,
-    write_video,
 )
+from sim.render import RenderObserver, render_rgb, segmentation_iou  # noqa: E402
+from sim.video import write_video  # noqa: E402
 
 H, W = 240, 320
 

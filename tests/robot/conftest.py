@@ -13,9 +13,8 @@ TINY = dict(feature_dim=16, encoder_hidden=16, encoder_global=16, actor_hidden=1
 @pytest.fixture(scope="session")
 def tiny_model(tmp_path_factory):
     """An untrained hydo-cm policy (planar goals, cube) exported exactly as ``hydo export`` does."""
-    from hydo_cli.export import export_agent
-    from hydo_cli.train import TrainConfig
-    from hydo_cli.trainer import agent_config
+    from hydo_cli.config import TrainConfig, agent_config
+    from hydo_cli.onnx_export import export_agent
     from models.algos import HybridAgent
 
     cfg = TrainConfig(algo="hydo-cm", objects="cube", goals="planar", n_obj=32, n_bg=16, agent=TINY)

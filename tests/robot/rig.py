@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from fakes import Box, PandaScript, ScriptedCamera, SyntheticScene, fake_panda_py, install
 
 from robot.cameras import CameraSet
 from robot.cell import EXAMPLE_CELL, load_cell
-from robot.fakes import Box, PandaScript, ScriptedCamera, SyntheticScene, fake_panda_py, install
 from robot.loop import DeployConfig, Deployment
 from robot.perception import capture_background, segment
 from robot.registration import Goal
@@ -116,7 +116,7 @@ def push_towards_robot(dep: Deployment, motion=(-1.0, 0.0, 0.0)):
     calls = {"n": 0}
     motions = motion if isinstance(motion, list) else None
 
-    def act(points, features, rng, **feasibility):  # scripted: ignores the feasibility inputs
+    def act(points, features, rng, normals=None, feasible=None):  # scripted: ignores normals, feasibility
         n_obj = dep.policy.n_obj
         obj = points[:n_obj]
         z_ok = obj[:, 2] > dep.cell.floor_z + 0.015

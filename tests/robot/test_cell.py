@@ -28,7 +28,8 @@ def test_example_cameras_are_the_training_scene_cameras_shifted_by_the_bin(cell)
     """The twin's cell must see the bin like the training renderer (sim/assets/scene.xml) does."""
     import mujoco
 
-    from sim.render import camera_pose_cv, pinhole_intrinsics
+    from sim.depth import pinhole_intrinsics
+    from sim.render import camera_pose_cv
     from sim.scene import ASSETS
 
     m = mujoco.MjModel.from_xml_path(str(ASSETS / "scene.xml"))

@@ -24,7 +24,7 @@ RUNNER = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     from rig import make_rig, push_towards_robot
     import robot.loop as L
-    from robot.fakes import PandaScript, fake_panda_py, fake_pyrealsense2, install
+    from fakes import PandaScript, fake_panda_py, fake_pyrealsense2, install
 
     rig = make_rig(Path({tmp!r}), Path({model!r}))
     install(None, "pyrealsense2", fake_pyrealsense2(rig.scene))

@@ -17,9 +17,11 @@ import textwrap
 
 import numpy as np
 import pytest
+from fakes import Box, PandaScript, fake_pyrealsense2, install
 from rig import GOAL, START, make_rig, push_towards_robot
 
-from robot.cameras import CameraSet, ReplayCamera, open_cameras
+from robot.cameras import CameraSet, ReplayCamera
+from robot.connect import open_cameras
 from robot.errors import (
     CameraError,
     InputError,
@@ -30,7 +32,6 @@ from robot.errors import (
     RobotFaultError,
 )
 from robot.executor import Outcome
-from robot.fakes import Box, PandaScript, fake_pyrealsense2, install
 from robot.session_log import read_log
 from sim.primitive import PrimitiveRejected
 
@@ -331,7 +332,7 @@ def test_sigkill_mid_step_leaves_a_log_line_before_every_command_and_a_replayabl
         import sys
         sys.path.insert(0, {str(os.path.dirname(__file__))!r})
         from rig import make_rig, push_towards_robot
-        from robot.fakes import PandaScript, fake_panda_py, install
+        from fakes import PandaScript, fake_panda_py, install
         from robot.panda import PandaExecutor
         from pathlib import Path
         rig = make_rig(Path({str(rig.tmp / "kill")!r}), Path({str(rig.model)!r}))

@@ -15,12 +15,12 @@ import time
 
 import numpy as np
 import pytest
+from fakes import FrankyScript, fake_franky, install
 
 from robot.errors import RobotConnectionError
 from robot.executor import Command, Outcome, RobotMode
-from robot.fakes import FrankyScript, fake_franky, install
 from robot.fr3 import GLOBAL_DYNAMICS_FACTOR, FR3Executor
-from robot.panda import fingertip_to_ee
+from robot.libfranka import fingertip_to_ee
 from robot.safety import SafetyGate
 from robot.session_log import SessionLog, read_log
 
@@ -46,7 +46,7 @@ def test_fr3_sends_absolute_base_frame_targets_with_limits_from_the_cell(monkeyp
     assert r.recoveries == 1 and r.relative_dynamics_factor == GLOBAL_DYNAMICS_FACTOR
     assert r.collision == ([cell.limits.collision_torque] * 7, [cell.limits.collision_force] * 6)
     assert r.realtime_config == "Ignore"
-    from robot.fakes import DEFAULT_F_T_EE
+    from fakes import DEFAULT_F_T_EE
 
     tip_to_ee = fingertip_to_ee(cell, DEFAULT_F_T_EE)
     for motion, command in zip(r.moves[:-1], plan.commands[:-1], strict=True):
@@ -214,7 +214,7 @@ HAVE_REALSENSE = importlib.util.find_spec("pyrealsense2") is not None
 
 @pytest.mark.skipif(not HAVE_REALSENSE, reason="pyrealsense2 is not installed (the subject of this test)")
 def test_real_pyrealsense2_without_a_device_names_the_missing_camera(cell):
-    from robot.cameras import open_cameras
+    from robot.connect import open_cameras
     from robot.errors import CameraError
 
     try:

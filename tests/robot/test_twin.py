@@ -12,15 +12,16 @@ import textwrap
 import numpy as np
 import pytest
 
-from robot.cameras import CameraSet, open_cameras
+from robot.cameras import CameraSet
+from robot.connect import open_cameras
 from robot.errors import UnreachableError
 from robot.executor import Outcome
 from robot.perception import capture_background, segment
 from robot.safety import SafetyGate
 from robot.session_log import SessionLog, read_log
 from robot.twin import TwinExecutor, TwinWorld
+from sim.depth import mask_iou
 from sim.objects import load_objects
-from sim.render import mask_iou
 
 
 @pytest.fixture(scope="module")
@@ -144,7 +145,7 @@ def test_twin_reflex_limit_ends_the_episode_a_real_arm_stops_the_run(tiny_model,
             )
         )
 
-        def act(points, features, rng, **feasibility):  # the highest object point, pushing nowhere
+        def act(points, features, rng, normals=None, feasible=None):  # the highest object point, no push
             return int(np.argmax(points[: dep.policy.n_obj, 2])), np.zeros(3, np.float32), {}
 
         dep.policy.act = act

@@ -32,7 +32,7 @@ import numpy as np
 from robot.arm import R_DOWN, rot_z
 from robot.cameras import Camera, Frame
 from robot.errors import CameraError
-from robot.executor import OPERATOR_ACTIONS, RECOVERABLE_ERRORS
+from robot.libfranka import OPERATOR_ACTIONS, RECOVERABLE_ERRORS, fingertip_to_ee
 
 # --- synthetic depth -----------------------------------------------------------------------------------
 
@@ -327,8 +327,6 @@ class PandaScript:
 def fake_panda_py(cell, script: PandaScript | None = None):
     """A module with the ``panda_py`` API that ``PandaExecutor`` uses; ``module.arm`` is the fake arm
     once connected (``module.connects`` counts connection attempts)."""
-    from robot.panda import fingertip_to_ee
-
     script = script or PandaScript()
     pp = types.ModuleType("panda_py")
     pp.connects = 0
@@ -548,8 +546,6 @@ class FrankyScript:
 
 def fake_franky(cell, script: FrankyScript | None = None):
     """A module with the ``franky`` API that ``FR3Executor`` uses; ``module.robot`` once connected."""
-    from robot.panda import fingertip_to_ee
-
     script = script or FrankyScript()
     fr = types.ModuleType("franky")
     fr.robot = None
