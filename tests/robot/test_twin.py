@@ -19,7 +19,7 @@ from robot.executor import Outcome
 from robot.perception import capture_background, segment
 from robot.safety import SafetyGate
 from robot.session_log import SessionLog, read_log
-from robot.twin import TwinExecutor, TwinWorld
+from robot.twin import TwinExecutor, TwinWorld, sample_episode
 from sim.depth import mask_iou
 from sim.objects import load_objects
 
@@ -160,6 +160,23 @@ def test_twin_reflex_limit_ends_the_episode_a_real_arm_stops_the_run(tiny_model,
     lines = read_log(tmp_path / "evaluate")
     assert [e["episode"] for e in lines if e["event"] == "episode_stopped"] == [0, 1]
     assert len([e for e in lines if e["event"] == "recovery"]) == 6  # three per episode, then no more
+
+
+@pytest.mark.parametrize("goals", ["planar", "6d"])
+def test_twin_episodes_are_the_training_envs_in_the_cells_bin(world, cell, goals):
+    """One home for episode sampling (sim.goals): for the same seed the twin draws the training env's
+    object, start and goal, moved to the cell's bin."""
+    import sim  # noqa: F401
+    from sim.env import BinEnv
+
+    assets = load_objects("train")
+    asset, start, goal = sample_episode(world, assets, goals, np.random.default_rng(11))
+    env = BinEnv(objects=assets, goals=goals)
+    _, info = env.reset(seed=11)  # gymnasium seeds PCG64 like np.random.default_rng
+    assert info["object"] == asset.name
+    np.testing.assert_allclose(goal[0] - cell.bin_center, env.goal_pose[0], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(goal[1], env.goal_pose[1])
+    env.close()
 
 
 def test_unreachable_or_near_joint_limit_plans_refused(world, cell):
