@@ -1,5 +1,8 @@
 """Depth cameras behind one interface: Intel RealSense, the twin's rendered cameras, session replay.
 
+This module holds the interface, the RealSense and the replay camera; the twin's camera is
+``robot.twin.TwinCamera``, and ``robot.connect.open_cameras`` picks the cameras for ``--robot``.
+
 Every camera yields :class:`Frame` objects: a depth image in metres (0 = hole, as a RealSense
 reports it; NaN/inf are refused by perception), the capture time on the host clock and a counter.
 The camera's serial, intrinsics and extrinsics come from the cell (``robot.cell.CameraSpec``), never

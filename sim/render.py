@@ -147,7 +147,7 @@ class RenderObserver:
     removed, rendered once per model and clutter layout), back-project the mask; then fuse the three
     views (randomly thinned to ``MAX_OBJECT_POINTS``) and estimate PCA normals oriented towards the
     seeing camera. Background points are the unmasked pixels (minus a 2-pixel rim around the mask)
-    on a ``BG_STRIDE`` grid inside ``BIN_CROP_LOW``..``BIN_CROP_HIGH``.
+    on a ``BG_STRIDE`` grid inside ``BIN_CROP_LOW``..``BIN_CROP_HIGH`` (constants of ``sim.depth``).
 
     When fewer than ``MIN_OBJECT_POINTS`` object pixels are seen (object out of view or hidden),
     the object points fall back to the visible mesh samples and ``self.fallbacks`` counts it.
