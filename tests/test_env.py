@@ -60,14 +60,27 @@ def test_seeding_is_exactly_reproducible():
     assert not np.array_equal(a[0], c[0])
 
 
-def test_reward_is_sum_of_info_terms_and_success_threshold():
-    env = BinEnv(objects="cube", goals="planar")
-    env.reset(seed=0)
-    _, r, term, _, info = env.step((0, np.zeros(3)))
-    terms = sum(v for k, v in info.items() if k.startswith("reward_"))
-    assert r == pytest.approx(terms)
-    assert r == pytest.approx(-info["distance"])
-    assert info["success"] == (info["distance"] < SUCCESS_THRESHOLD_M)
+def test_reward_is_minus_the_mean_goal_flow_and_success_threshold():
+    """The reward recomputed by hand, without the contract's helpers: −mean ‖T_goal·p − T_obj·p‖ over
+    the object's own-frame surface samples p, with both poses built from ``info`` by scipy."""
+    from scipy.spatial.transform import Rotation
+
+    def matrix(pose):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat(pose[3:], scalar_first=True).as_matrix()
+        T[:3, 3] = pose[:3]
+        return T
+
+    env = BinEnv(objects="train", goals="planar")
+    obs, _ = env.reset(seed=0)
+    _, r, term, _, info = env.step(heuristic_action(obs, np.random.default_rng(0)))
+    assert not info["rejected"]  # the push ran: the object moved
+    p = env.scene.asset.surface_points
+    p = np.concatenate([p, np.ones((len(p), 1))], axis=1)
+    dist = np.linalg.norm((p @ (matrix(info["goal_pose"]) - matrix(info["object_pose"])).T)[:, :3], axis=1)
+    assert r == pytest.approx(-dist.mean(), rel=1e-5) and r < 0
+    assert info["reward_flow"] == r and info["distance"] == pytest.approx(dist.mean())
+    assert info["success"] == (dist.mean() < SUCCESS_THRESHOLD_M) == term
 
 
 def test_info_poses_reproduce_the_observed_goal_flow():

@@ -79,7 +79,9 @@ def test_train_resume_eval_export(tmp_path):
     out = tmp_path / "eval.json"
     r = hydo("eval", str(run), "--objects", "cube", "--episodes", "2", "--json", str(out))
     assert r.returncode == 0, r.stderr[-2000:]
-    assert 0.0 <= json.loads(out.read_text())["runs"][0]["success_rate"] <= 1.0
+    detail = json.loads(out.read_text())["runs"][0]["episodes_detail"]
+    assert len(detail) == 2
+    assert json.loads(out.read_text())["runs"][0]["success_rate"] == sum(e["success"] for e in detail) / 2
     assert json.loads(out.read_text())["runs"][0]["stochastic"] is True  # the cm chain samples
     r = hydo(
         "eval", str(run), "--objects", "cube", "--episodes", "1", "--chain-noise", "zero", "--json", str(out)
