@@ -311,15 +311,18 @@ def test_force_stop_on_the_fake_panda_retracts(rig, monkeypatch):
 
 
 def test_ctrl_c_stops_the_arm_closes_cameras_and_flushes_the_log(rig, monkeypatch):
+    rs = fake_pyrealsense2(rig.scene)  # starting a pipeline that was never stopped: "device busy"
+    install(monkeypatch, "pyrealsense2", rs)
     dep = rig.deployment(max_steps=2)
     push_towards_robot(dep)
+    executor = rig.robot(monkeypatch, PandaScript(faults={3: "interrupt"}))
     with pytest.raises(KeyboardInterrupt):
-        rig.run(monkeypatch, dep, PandaScript(faults={3: "interrupt"}))
+        dep.run(cameras=open_cameras(rig.cell, "panda"), executor=executor)
     assert rig.arm.controller is None  # stopped
-    assert all(not c.is_open for c in rig.cams)
+    assert rs.state.started >= len(rig.cell.cameras) and rs.state.running == set()  # every pipeline stopped
     assert events(rig)[-1]["event"] == "interrupted"
-    with rig.cameras():  # reopening works
-        pass
+    with open_cameras(rig.cell, "panda") as cams:  # the next run opens the same devices and captures
+        assert [f.serial for f in cams.capture()] == [c.serial for c in rig.cell.cameras]
 
 
 # --- 20: SIGKILL ----------------------------------------------------------------------------------------------

@@ -300,6 +300,11 @@ def test_capture_background_and_goal_in_the_twin(tmp_path):
 def test_twin_cameras_close_and_reopen(world, cell):
     cams = open_cameras(cell, "sim", world=world)
     assert isinstance(cams, CameraSet)
-    with cams:
-        frames = cams.capture()
-    assert [f.serial for f in frames] == [c.serial for c in cell.cameras]
+    for round_ in (1, 2):  # the second round reopens the same, closed cameras
+        with cams:
+            assert all(cam._open for cam in cams)
+            frames = cams.capture()
+        assert not any(cam._open for cam in cams)
+        assert [f.serial for f in frames] == [c.serial for c in cell.cameras]
+        assert [f.index for f in frames] == [round_] * len(frames)  # the same cameras, counting on
+        assert all(np.isfinite(f.depth).all() and (f.depth > 0).mean() > 0.5 for f in frames)
