@@ -38,12 +38,13 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(2)
 
-    from hydo_cli.export import export_agent
-    from hydo_cli.train import TrainConfig
-    from hydo_cli.trainer import agent_config, load_agent
+    from hydo_cli.config import TrainConfig, agent_config
+    from hydo_cli.onnx_export import export_agent
+    from hydo_cli.policies import load_agent
     from robot.onnx_policy import OnnxPolicy
     from sim.atomic import atomic_write_text
     from sim.env import BinEnv
+    from sim.primitive import feasibility_mask
 
     if args.run is None:
         from models.algos import HybridAgent
@@ -63,12 +64,18 @@ def main() -> None:
     def torch_decision():
         with torch.no_grad():
             index, motion, _ = agent.act(
-                torch.from_numpy(pts), torch.from_numpy(feats), mode="eval", normals=torch.from_numpy(nrm)
+                torch.from_numpy(pts),
+                torch.from_numpy(feats),
+                mode="eval",
+                normals=torch.from_numpy(nrm),
+                feasible=feasibility_mask(pts, nrm),
             )
         return int(index[0])
 
     def ort_decision():
-        return int(policy.decide(pts, feats, policy.noise(1, rng), nrm)["index"][0])
+        return int(
+            policy.decide(pts, feats, policy.noise(1, rng), nrm, feasibility_mask(pts, nrm))["index"][0]
+        )
 
     per_graph = {"encoder": [], "actor": [], "critic": []}
     for _ in range(20):  # warm-up both

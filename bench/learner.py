@@ -9,7 +9,7 @@ Examples::
 
     python bench/learner.py
     python bench/learner.py --algos hydo-cm --batch-sizes 32,64,128 --json out/learner.json
-    python bench/learner.py --algos hydo --set actor_points=32 --set encoder_knn=8
+    python bench/learner.py --algos hydo --set actor_points=32
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import torch  # noqa: E402
 
 from models.algos import ALGOS, AgentConfig, HybridAgent  # noqa: E402
 from models.perf import configure_cpu  # noqa: E402
-from models.replay import ReplayBuffer  # noqa: E402
+from models.replay import ReplayBuffer, Transition  # noqa: E402
 
 
 def parse_overrides(items: list[str]) -> dict:
@@ -67,15 +67,17 @@ def fill_buffer(buf: ReplayBuffer, n: int, rng: np.random.Generator) -> None:
         feats[:, : buf.n_obj, 0] = 1.0
         feats[:, : buf.n_obj, 1:] = rng.normal(0, 0.05, size=(2, buf.n_obj, 3))
         buf.add(
-            pts[0],
-            feats[0],
-            int(rng.integers(buf.n_obj)),
-            rng.uniform(-1, 1, 3),
-            -float(rng.uniform(0, 0.2)),
-            pts[1],
-            feats[1],
-            bool(rng.random() < 0.1),
-            bool(rng.random() < 0.1),
+            Transition(
+                points=pts[0],
+                features=feats[0],
+                index=int(rng.integers(buf.n_obj)),
+                motion=rng.uniform(-1, 1, 3),
+                reward=-float(rng.uniform(0, 0.2)),
+                next_points=pts[1],
+                next_features=feats[1],
+                terminated=bool(rng.random() < 0.1),
+                truncated=bool(rng.random() < 0.1),
+            )
         )
 
 

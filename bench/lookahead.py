@@ -38,17 +38,15 @@ os.environ["OMP_NUM_THREADS"] = "1"
 ROOT = Path(__file__).resolve().parent.parent
 sys.path[:] = [str(ROOT)] + [p for p in sys.path if Path(p or ".").resolve() != ROOT / "bench"]
 
-import gymnasium  # noqa: E402
 import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-import sim  # noqa: E402, F401
 from sim.atomic import atomic_write_text  # noqa: E402
 from sim.baselines import heuristic_action  # noqa: E402
+from sim.env import BinEnv  # noqa: E402
 
 N_HEURISTIC = 4  # heuristic candidates per step (it samples among its contact points)
-NEAR_GOAL_M = 0.07  # pushes that start this close to the goal decide success (as bench/outcome.py)
 
 
 def random_candidates(n_candidates: int, rng: np.random.Generator):
@@ -69,15 +67,24 @@ def policy_candidates(agent, top: int, seed: int):
     ranking ``hydo eval`` decides on: ``HybridAgent.act``'s masked Q)."""
     import torch
 
-    from hydo_cli.trainer import stack_obs
+    from hydo_cli.policies import stack_obs
+    from sim.primitive import feasibility_mask
 
     generator = torch.Generator().manual_seed(seed)
 
     def propose(obs):
         points, features = stack_obs([obs])
-        normals = torch.from_numpy(obs["normals"][None])
+        normals = obs["normals"][None]
+        feasible = feasibility_mask(points.numpy(), normals)
         with torch.no_grad():
-            _, _, info = agent.act(points, features, mode="eval", generator=generator, normals=normals)
+            _, _, info = agent.act(
+                points,
+                features,
+                mode="eval",
+                generator=generator,
+                normals=torch.from_numpy(normals),
+                feasible=feasible,
+            )
         motions = info["motions"][0].numpy()  # (N_obj, 3)
         order = np.argsort(-info["q_select"][0].numpy(), kind="stable")[:top]
         return [(int(i), motions[i]) for i in order]
@@ -85,49 +92,31 @@ def policy_candidates(agent, top: int, seed: int):
     return propose
 
 
-def try_push(env, snapshot, action, perturb_m: float, rng: np.random.Generator) -> float:
+def try_push(env, snapshot, action) -> float:
     """Distance after ``action`` tried from ``snapshot`` (inf if refused or the object left the bin),
-    then back to the snapshot. With ``perturb_m > 0`` the push is tried slightly off: its contact
-    point moved ``perturb_m`` metres along a random tangent of the surface and its push path by
-    about as much (``rng``); what is executed afterwards is the unperturbed action."""
-    index, motion = action
-    if perturb_m > 0:
-        normal = env._obs["normals"][index]
-        tangent = np.cross(normal, rng.normal(size=3))
-        tangent /= max(np.linalg.norm(tangent), 1e-9)
-        env._obs["points"][index] += (perturb_m * tangent).astype(np.float32)  # undone by set_sim_state
-        jitter = rng.normal(0.0, perturb_m / (3 * 0.03), 3)  # three moves of 0.03·motion metres each
-        motion = np.clip(np.asarray(motion) + jitter, -1.0, 1.0)
-    _, _, _, _, tried = env.step((index, motion))
+    then back to the snapshot."""
+    _, _, _, _, tried = env.step(action)
     env.set_sim_state(snapshot)
     bad = tried["rejected"] or tried["failure"] == "object_left_bin"
     return np.inf if bad else tried["distance"]
 
 
-def search_episode(env, propose, seed: int, perturb_m: float = 0.0) -> dict:
-    """One episode of greedy one-step search over ``propose(obs)``'s candidates; returns its
-    outcome, the largest replay error and, with ``perturb_m``, the pairs (exact, perturbed) of the
-    distances the candidates reached (the searcher then judges each push by its perturbed twin)."""
+def search_episode(env, propose, seed: int) -> dict:
+    """One episode of greedy one-step search over ``propose(obs)``'s candidates; returns its outcome
+    and the largest replay error."""
     obs, info = env.reset(seed=seed)
-    rng = np.random.default_rng(seed)
-    replay_error, steps, pairs = 0.0, 0, []
+    replay_error, steps = 0.0, 0
     while True:
         snapshot = env.get_sim_state()
-        candidates = propose(obs)
-        before = float(np.linalg.norm(obs["features"][: len(obs["normals"]), 1:], axis=1).mean())
-        best, best_d, best_exact = candidates[0], np.inf, np.inf
-        for action in candidates:
-            d = try_push(env, snapshot, action, 0.0, rng)
-            judged = d
-            if perturb_m > 0:
-                judged = try_push(env, snapshot, action, perturb_m, rng)
-                pairs.append((before, d, judged))
-            if judged < best_d:
-                best, best_d, best_exact = action, judged, d
+        best, best_d = None, np.inf
+        for action in propose(obs):
+            d = try_push(env, snapshot, action)
+            if best is None or d < best_d:
+                best, best_d = action, d
         obs, _, terminated, truncated, info = env.step(best)
         steps += 1
-        if np.isfinite(best_exact):
-            replay_error = max(replay_error, abs(info["distance"] - best_exact))
+        if np.isfinite(best_d):
+            replay_error = max(replay_error, abs(info["distance"] - best_d))
         if terminated or truncated:
             return {
                 "object": info["object"],
@@ -135,7 +124,6 @@ def search_episode(env, propose, seed: int, perturb_m: float = 0.0) -> dict:
                 "steps": steps,
                 "final_distance": float(info["distance"]),
                 "replay_error": replay_error,
-                "pairs": pairs,
             }
 
 
@@ -147,13 +135,6 @@ def main() -> None:
         "--top", default="1,4,16", help="with --run: comma-separated numbers of top-ranked points"
     )
     ap.add_argument("--episodes", type=int, default=40)
-    ap.add_argument(
-        "--perturb-mm",
-        type=float,
-        default=0.0,
-        help="judge each candidate by the same push tried this far off (contact point and path): "
-        "how much of the search's success rests on outcomes no observation could predict",
-    )
     ap.add_argument("--objects", default="train")
     ap.add_argument("--goals", default="planar", choices=["planar", "6d"])
     ap.add_argument("--seed", type=int, default=0)
@@ -167,28 +148,21 @@ def main() -> None:
     else:
         import torch
 
-        from hydo_cli.trainer import load_agent
+        from hydo_cli.policies import load_agent
 
         torch.set_num_threads(1)
         agent, cfg, _ = load_agent(args.run)
         counts = [int(c) for c in args.top.split(",")]
         n_obj, n_bg = cfg.n_obj, cfg.n_bg
 
-    env = gymnasium.make(
-        "hydo/Bin-v0", objects=args.objects, goals=args.goals, n_obj=n_obj, n_bg=n_bg
-    ).unwrapped
+    env = BinEnv(objects=args.objects, goals=args.goals, n_obj=n_obj, n_bg=n_bg)
     results = {}
     for c in counts:
         rng = np.random.default_rng(args.seed)
         propose = random_candidates(c, rng) if args.run is None else policy_candidates(agent, c, args.seed)
         t0 = time.perf_counter()
-        eps = [
-            search_episode(env, propose, args.seed * 100_000 + i, args.perturb_mm / 1000)
-            for i in range(args.episodes)
-        ]
+        eps = [search_episode(env, propose, args.seed * 100_000 + i) for i in range(args.episodes)]
         ok = [e for e in eps if e["success"]]
-        pairs = np.array([p for e in eps for p in e["pairs"]]).reshape(-1, 3)
-        pairs = pairs[np.isfinite(pairs).all(axis=1) & (pairs[:, 0] < NEAR_GOAL_M)]
         results[f"{'top' if args.run else 'C'}={c}"] = {
             "candidates": c,
             "episodes": len(eps),
@@ -198,15 +172,6 @@ def main() -> None:
             "max_replay_error_m": float(max(e["replay_error"] for e in eps)),
             "wall_s": time.perf_counter() - t0,
         }
-        if args.perturb_mm > 0:  # outcome noise near the goal: exact vs perturbed distance after a push
-            change = pairs[:, 1] - pairs[:, 0]
-            results[f"{'top' if args.run else 'C'}={c}"] |= {
-                "perturb_mm": args.perturb_mm,
-                "near_pairs": len(pairs),
-                "near_perturbed_rms_diff_m": float(np.sqrt(np.mean((pairs[:, 1] - pairs[:, 2]) ** 2))),
-                "near_change_std_m": float(change.std()),
-                "near_perturbed_change_corr": float(np.corrcoef(change, pairs[:, 2] - pairs[:, 0])[0, 1]),
-            }
 
     source = f"{args.run}'s top-ranked proposals" if args.run else "heuristic + random candidates"
     table = Table(title=f"one-step lookahead over {source} ({args.objects} objects, {args.goals} goals)")
@@ -232,14 +197,6 @@ def main() -> None:
             f"{r['wall_s']:.0f}",
         )
     Console().print(table)
-    for name, r in results.items():
-        if "near_pairs" in r:
-            print(
-                f"{name}: near the goal ({r['near_pairs']} pushes), a push tried {r['perturb_mm']:g} mm off "
-                f"ends {r['near_perturbed_rms_diff_m'] * 100:.2f} cm (rms) from the exact one; the change of "
-                f"distance has std {r['near_change_std_m'] * 100:.2f} cm, correlation exact vs perturbed "
-                f"{r['near_perturbed_change_corr']:.3f}"
-            )
     if args.json:
         meta = {"command": "python " + " ".join(sys.argv), "python": platform.python_version(), **vars(args)}
         meta["json"] = str(args.json)

@@ -46,7 +46,7 @@ import gymnasium  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-import sim  # noqa: E402, F401
+import sim.env  # noqa: E402, F401  (registers hydo/Bin-v0)
 from sim.atomic import atomic_write_text  # noqa: E402
 from sim.primitive import SIM_WORKSPACE, PrimitiveRejected, check_plan, primitive_waypoints  # noqa: E402
 

@@ -2,43 +2,15 @@
 
 from __future__ import annotations
 
-from enum import Enum
 from typing import Annotated
 
 import typer
 
+from models.choices import ChainNoise, EvalWeights
+from sim.contract import Goals, ObsSource
+from sim.tasks import TaskName
 
-class Goals(str, Enum):
-    planar = "planar"
-    sixd = "6d"
-
-
-class ObsSource(str, Enum):
-    mesh = "mesh"
-    render = "render"
-
-
-class EvalWeights(str, Enum):
-    """Weights a trained agent acts with in evaluation (``models.algos.EVAL_WEIGHTS``; a test keeps
-    the two lists equal)."""
-
-    average = "average"
-    online = "online"
-
-
-class ChainNoise(str, Enum):
-    """How a trained chain policy samples in evaluation (``models.algos.EVAL_CHAIN_NOISE``; a test
-    keeps the two lists equal)."""
-
-    sample = "sample"
-    zero = "zero"
-
-
-class TaskName(str, Enum):
-    """Behaviour-diversity tasks (``sim.tasks.TASKS``; a test keeps the two lists equal)."""
-
-    push_line = "push-line"
-    push_align = "push-align"
+__all__ = ["ChainNoise", "EvalWeights", "Goals", "ObsSource", "TaskName"]
 
 
 ObjectsOpt = Annotated[

@@ -1,12 +1,30 @@
-"""Turning an eval TARGET into a batched policy: built-in baselines, runs and checkpoints."""
+"""Policy loading, one home for every command: an eval TARGET (built-in baseline, training run,
+checkpoint or exported model folder) → a batched policy (``hydo_cli.rollout.Policy``).
+
+torch is imported only for runs and checkpoints: an exported model runs through onnxruntime alone.
+The feasibility mask is made here, where each batch of observations arrives
+(``sim.primitive.feasibility_mask``), and handed to the agent or the ONNX runner.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+import numpy as np
+
+from hydo_cli.config import CHECKPOINT_FORMAT, TrainConfig, agent_config
 from hydo_cli.errors import HydoError
 from hydo_cli.rollout import Policy, baseline_policy
+from sim.primitive import feasibility_mask
+
+if TYPE_CHECKING:  # torch is imported only where a run or checkpoint is loaded
+    import torch
+
+    from models.algos import HybridAgent
 
 BASELINES = ("heuristic", "random")
 
@@ -53,15 +71,11 @@ def load_policy(
         raise HydoError(f"eval target '{target}' {what}")
     if path.is_file() and path.suffix == ".onnx":
         raise HydoError(f"eval target '{target}' is one graph of a model: give its folder ({path.parent})")
-    from hydo_cli.trainer import load_policy_from_checkpoint  # torch: only for runs and checkpoints
-
     return load_policy_from_checkpoint(path, seed, feasible_only, weights, chain_noise)
 
 
 def load_onnx_policy(folder: Path, seed: int, feasible_only: bool = True) -> LoadedPolicy:
     """An exported model folder, run through onnxruntime (``robot.onnx_policy``, no torch)."""
-    import numpy as np
-
     from robot.onnx_policy import OnnxPolicy
 
     model = OnnxPolicy.load(folder)
@@ -72,7 +86,8 @@ def load_onnx_policy(folder: Path, seed: int, feasible_only: bool = True) -> Loa
         features = np.stack([o["features"] for o in observations])
         normals = np.stack([o["normals"] for o in observations])
         noise = model.noise(len(observations), rng)
-        out = model.decide(points, features, noise, normals, feasible_only=feasible_only)
+        feasible = feasibility_mask(points, normals) if feasible_only else None
+        out = model.decide(points, features, noise, normals, feasible)
         return list(zip(out["index"].tolist(), out["motion"], strict=True))
 
     return LoadedPolicy(
@@ -83,3 +98,82 @@ def load_onnx_policy(folder: Path, seed: int, feasible_only: bool = True) -> Loa
         f"{model.manifest['algo']} (onnx {folder})",
         str(model.manifest["algo"]),
     )
+
+
+def stack_obs(observations: list[dict[str, np.ndarray]]) -> tuple[torch.Tensor, torch.Tensor]:
+    """List of env observations → ``points (B, N, 3)``, ``features (B, N, 4)`` float32 tensors."""
+    import torch
+
+    points = torch.from_numpy(np.stack([o["points"] for o in observations]))
+    features = torch.from_numpy(np.stack([o["features"] for o in observations]))
+    return points, features
+
+
+def agent_policy(agent: HybridAgent, mode: str, generator: torch.Generator, feasible_only: bool = True):
+    """Wrap ``agent.act`` as a batched ``hydo_cli.rollout`` policy (``feasible_only``: choose among
+    points whose push can run, see ``HybridAgent.act``)."""
+    import torch
+
+    def policy(observations):
+        points, features = stack_obs(observations)
+        normals = np.stack([o["normals"] for o in observations])
+        # the mask is made here, where the observation is: the agent only applies it
+        feasible = feasibility_mask(points.numpy(), normals) if feasible_only else None
+        with torch.no_grad():
+            index, motion, _ = agent.act(
+                points,
+                features,
+                mode=mode,
+                generator=generator,
+                normals=torch.from_numpy(normals),
+                feasible=feasible,
+            )
+        return list(zip(index.tolist(), motion.numpy(), strict=True))
+
+    return policy
+
+
+def load_agent(path: Path) -> tuple[HybridAgent, TrainConfig, str]:
+    """A run directory (its ``checkpoint.pt``) or a checkpoint file → ``(agent, config, command)``."""
+    path = Path(path)
+    from models.algos import HybridAgent
+    from models.checkpoint import CheckpointError, load_checkpoint
+
+    ckpt_path = path / "checkpoint.pt" if path.is_dir() else path
+    if path.is_dir() and not ckpt_path.exists():
+        raise HydoError(f"{path} is a folder without checkpoint.pt (not a training run)")
+    ckpt = load_checkpoint(ckpt_path)
+    if int(ckpt.get("format", -1)) != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{ckpt_path}: checkpoint format {ckpt.get('format')} != {CHECKPOINT_FORMAT}")
+    try:
+        cfg = TrainConfig.from_dict(json.loads(ckpt["config"]), str(ckpt_path))
+        agent = HybridAgent(agent_config(cfg))
+        agent.load_state_dict(ckpt["agent"])
+    except (KeyError, TypeError, ValueError, RuntimeError, HydoError) as e:
+        raise CheckpointError(
+            f"{ckpt_path} does not hold a loadable hydo agent ({str(e).splitlines()[0][:120]})"
+        ) from None
+    command_file = ckpt_path.parent / "command.txt"
+    command = command_file.read_text().strip() if command_file.exists() else "unknown"
+    return agent, cfg, command
+
+
+def load_policy_from_checkpoint(
+    path: Path,
+    seed: int,
+    feasible_only: bool = True,
+    weights: str | None = None,
+    chain_noise: str | None = None,
+) -> LoadedPolicy:
+    """A run directory or checkpoint file → eval-mode batched policy (``weights`` overrides the
+    agent's ``eval_weights``: "average" | "online"; ``chain_noise`` its ``eval_chain_noise``: "sample" |
+    "zero")."""
+    import torch
+
+    agent, cfg, _ = load_agent(path)
+    if weights is not None:
+        agent.config = dataclasses.replace(agent.config, eval_weights=weights)
+    if chain_noise is not None:
+        agent.config = dataclasses.replace(agent.config, eval_chain_noise=chain_noise)
+    policy = agent_policy(agent, "eval", torch.Generator().manual_seed(seed), feasible_only)
+    return LoadedPolicy(policy, cfg.n_obj, cfg.n_bg, agent.eval_stochastic, f"{cfg.algo} ({path})", cfg.algo)

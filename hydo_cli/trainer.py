@@ -18,53 +18,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hydo_cli.errors import HydoError
-from hydo_cli.evaluate import make_envs
-from hydo_cli.policies import LoadedPolicy
+from hydo_cli.config import CHECKPOINT_FORMAT, TrainConfig, agent_config
+from hydo_cli.envs import make_envs
+from hydo_cli.policies import agent_policy
 from hydo_cli.rollout import run_episodes, summarize
-from hydo_cli.train import TrainConfig
-from models.algos import AgentConfig, HybridAgent
+from models.algos import HybridAgent
 from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from models.perf import configure_cpu
-from models.replay import ReplayBuffer
+from models.replay import ReplayBuffer, Transition
 from sim.contract import SUCCESS_THRESHOLD_M, pose_matrix
 
-CHECKPOINT_FORMAT = 1
 EVAL_SEED_OFFSET = 10_000  # evaluation episodes never share seeds with training episodes
-
-
-def agent_config(cfg: TrainConfig) -> AgentConfig:
-    return AgentConfig(
-        algo=cfg.algo,
-        n_obj=cfg.n_obj,
-        n_bg=cfg.n_bg,
-        seed=cfg.seed,
-        denoise_steps=cfg.denoise_steps,
-        **cfg.agent,
-    )
-
-
-def stack_obs(observations: list[dict[str, np.ndarray]]) -> tuple[torch.Tensor, torch.Tensor]:
-    """List of env observations → ``points (B, N, 3)``, ``features (B, N, 4)`` float32 tensors."""
-    points = torch.from_numpy(np.stack([o["points"] for o in observations]))
-    features = torch.from_numpy(np.stack([o["features"] for o in observations]))
-    return points, features
-
-
-def agent_policy(agent: HybridAgent, mode: str, generator: torch.Generator, feasible_only: bool = True):
-    """Wrap ``agent.act`` as a batched ``hydo_cli.rollout`` policy (``feasible_only``: choose among
-    points whose push can run, see ``HybridAgent.act``)."""
-
-    def policy(observations):
-        points, features = stack_obs(observations)
-        normals = torch.from_numpy(np.stack([o["normals"] for o in observations]))
-        with torch.no_grad():
-            index, motion, _ = agent.act(
-                points, features, mode=mode, generator=generator, normals=normals, feasible_only=feasible_only
-            )
-        return list(zip(index.tolist(), motion.numpy(), strict=True))
-
-    return policy
 
 
 class JsonlLog:
@@ -219,46 +183,26 @@ class Trainer:
                     else:
                         actions = agent_policy(self.agent, "explore", self.generator)(obs)
                     # 2. step every env; store real next observations (truncation still bootstraps)
-                    batch = {
-                        k: []
-                        for k in (
-                            "p",
-                            "f",
-                            "i",
-                            "m",
-                            "r",
-                            "np",
-                            "nf",
-                            "term",
-                            "trunc",
-                            "goal",
-                            "got",
-                            "n",
-                            "nn",
-                        )
-                    }
+                    rows: list[Transition] = []
                     for k, (env, action) in enumerate(zip(self.envs, actions, strict=True)):
                         next_obs, reward, terminated, truncated, info = env.step(action)
-                        for key, val in zip(
-                            batch,
-                            (
-                                obs[k]["points"],
-                                obs[k]["features"],
-                                action[0],
-                                action[1],
-                                reward,
-                                next_obs["points"],
-                                next_obs["features"],
-                                terminated,
-                                truncated,
-                                pose_matrix(info["goal_pose"][:3], info["goal_pose"][3:]),
-                                pose_matrix(info["object_pose"][:3], info["object_pose"][3:]),
-                                obs[k]["normals"],
-                                next_obs["normals"],
-                            ),
-                            strict=True,
-                        ):
-                            batch[key].append(val)
+                        rows.append(
+                            Transition(
+                                points=obs[k]["points"],
+                                features=obs[k]["features"],
+                                index=action[0],
+                                motion=action[1],
+                                reward=reward,
+                                next_points=next_obs["points"],
+                                next_features=next_obs["features"],
+                                terminated=terminated,
+                                truncated=truncated,
+                                goal_T=pose_matrix(info["goal_pose"][:3], info["goal_pose"][3:]),
+                                achieved_T=pose_matrix(info["object_pose"][:3], info["object_pose"][3:]),
+                                normals=obs[k]["normals"],
+                                next_normals=next_obs["normals"],
+                            )
+                        )
                         ep_return[k] += reward
                         if terminated or truncated:
                             self.episodes += 1
@@ -267,13 +211,13 @@ class Trainer:
                             ep_return[k] = 0.0
                             next_obs, _ = env.reset(seed=int(self.rng.integers(2**31)))
                         obs[k] = next_obs
-                    self.buffer.add(*(np.asarray(v) for v in batch.values()))
+                    self.buffer.add(Transition(*(np.asarray(col) for col in zip(*rows, strict=True))))
                     self.env_steps += len(self.envs)
                     # 3. learn: updates_per_step gradient updates per env step, carried over fractions
                     if self.env_steps >= cfg.learning_starts and len(self.buffer) >= cfg.batch_size:
                         update_debt += cfg.updates_per_step * len(self.envs)
                         while update_debt >= 1.0:
-                            sampled = self.buffer.sample(cfg.batch_size, cfg.augment, cfg.relabel_future)
+                            sampled = self.buffer.sample(cfg.batch_size, cfg.relabel_future)
                             last_metrics = self.agent.update(sampled)
                             self.updates += 1
                             update_debt -= 1.0
@@ -354,44 +298,3 @@ class Trainer:
             f"eval @ {self.env_steps} steps ({row['wall_s'] / 60:.1f} min): success {row['success_rate']:.0%} "
             f"over {row['episodes']} episodes, return {row['mean_return']:.3f}"
         )
-
-
-def load_agent(path: Path) -> tuple[HybridAgent, TrainConfig, str]:
-    """A run directory (its ``checkpoint.pt``) or a checkpoint file → ``(agent, config, command)``."""
-    path = Path(path)
-    ckpt_path = path / "checkpoint.pt" if path.is_dir() else path
-    if path.is_dir() and not ckpt_path.exists():
-        raise HydoError(f"{path} is a folder without checkpoint.pt (not a training run)")
-    ckpt = load_checkpoint(ckpt_path)
-    if int(ckpt.get("format", -1)) != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{ckpt_path}: checkpoint format {ckpt.get('format')} != {CHECKPOINT_FORMAT}")
-    try:
-        cfg = TrainConfig(**json.loads(ckpt["config"]))
-        agent = HybridAgent(agent_config(cfg))
-        agent.load_state_dict(ckpt["agent"])
-    except (KeyError, TypeError, ValueError, RuntimeError) as e:
-        raise CheckpointError(
-            f"{ckpt_path} does not hold a loadable hydo agent ({str(e).splitlines()[0][:120]})"
-        ) from None
-    command_file = ckpt_path.parent / "command.txt"
-    command = command_file.read_text().strip() if command_file.exists() else "unknown"
-    return agent, cfg, command
-
-
-def load_policy_from_checkpoint(
-    path: Path,
-    seed: int,
-    feasible_only: bool = True,
-    weights: str | None = None,
-    chain_noise: str | None = None,
-) -> LoadedPolicy:
-    """A run directory or checkpoint file → eval-mode batched policy (``weights`` overrides the
-    agent's ``eval_weights``: "average" | "online"; ``chain_noise`` its ``eval_chain_noise``: "sample" |
-    "zero")."""
-    agent, cfg, _ = load_agent(path)
-    if weights is not None:
-        agent.config = dataclasses.replace(agent.config, eval_weights=weights)
-    if chain_noise is not None:
-        agent.config = dataclasses.replace(agent.config, eval_chain_noise=chain_noise)
-    policy = agent_policy(agent, "eval", torch.Generator().manual_seed(seed), feasible_only)
-    return LoadedPolicy(policy, cfg.n_obj, cfg.n_bg, agent.eval_stochastic, f"{cfg.algo} ({path})", cfg.algo)

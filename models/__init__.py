@@ -1,20 +1,6 @@
-"""hydo learners, torch only: encoder, motion policies, critics, the six algorithms, replay, checkpoints.
+"""hydo learners: encoder, motion policies, critics, the six algorithms, replay, checkpoints.
 
-Tensors in, tensors out: nothing here imports ``sim`` or ``robot``. Start at ``models.algos``.
+Tensors in, tensors out: of ``sim`` only the pure-numpy contract modules, nothing of ``robot``.
+Start at ``models.algos``; ``models.choices`` (the algorithm table and every named choice) imports no
+torch, so the CLI can offer the choices without loading it.
 """
-
-from models.algos import ALGOS, AgentConfig, AlgoSpec, HybridAgent
-from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from models.replay import ReplayBatch, ReplayBuffer
-
-__all__ = [
-    "ALGOS",
-    "AgentConfig",
-    "AlgoSpec",
-    "CheckpointError",
-    "HybridAgent",
-    "ReplayBatch",
-    "ReplayBuffer",
-    "load_checkpoint",
-    "save_checkpoint",
-]

@@ -33,17 +33,19 @@ from __future__ import annotations
 import contextlib
 import copy
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, fields
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
 
+from models.choices import ALGOS, EVAL_CHAIN_NOISE, EVAL_WEIGHTS, MODES, AlgoSpec
 from models.common import check_shape, polyak_update
 from models.encoder import PointEncoder
-from models.heads import TwinQ, hl_gauss_targets, location_policy
+from models.heads import TwinQ, location_policy
 from models.motion import (
     CHAIN_ENTROPY,
     MOTION_DIM,
@@ -54,33 +56,14 @@ from models.motion import (
     make_motion_policy,
 )
 from models.replay import ReplayBatch
-from sim.primitive import SIM_WORKSPACE, Workspace, feasible_points, mask_infeasible
 
 
-@dataclass(frozen=True)
-class AlgoSpec:
-    """One row of the algorithm table."""
-
-    paper_name: str
-    objective: str  # "td3" | "sac"
-    motion: str  # "tanh" | "gauss" | "ddpm" | "cm"
-    entropy: str  # "none" | "location+motion" | "location+chain"
-
-
-ALGOS: dict[str, AlgoSpec] = {
-    "hacman": AlgoSpec("HACMan", "td3", "tanh", "none"),
-    "hacman-diff": AlgoSpec("HACMan + Diff", "td3", "ddpm", "none"),
-    "hacman-cm": AlgoSpec("HACMan + CM", "td3", "cm", "none"),
-    "hydo-gauss": AlgoSpec("HyDo (w/o Diff)", "sac", "gauss", "location+motion"),
-    "hydo": AlgoSpec("HyDo", "sac", "ddpm", "location+chain"),
-    "hydo-cm": AlgoSpec("HyDo + CM", "sac", "cm", "location+chain"),
-}
-
-MODES = ("explore", "eval")
-HL_GAUSS_SIGMA_BINS = 0.75  # HL-Gauss σ in bin widths (Farebrother et al. 2024's recommended ratio)
-EVAL_WEIGHTS = ("average", "online")
-EVAL_CHAIN_NOISE = ("sample", "zero")
 AGENT_FORMAT = "hydo-agent/1"
+#: Options that measurements showed do not help (docs/experiments.md), with the value that made them
+#: inert. A checkpoint that recorded them at that value loads as before; any other value is refused.
+#: (``critic_value_min/max`` only shaped the removed categorical critic's bins.)
+REMOVED_OPTIONS: dict[str, Any] = {"encoder_knn": 0, "critic_layer_norm": False, "critic_bins": 0}
+REMOVED_INERT = ("critic_value_min", "critic_value_max")
 
 
 @dataclass(frozen=True)
@@ -103,9 +86,6 @@ class AgentConfig:
     """Width of the encoder's per-point MLPs."""
     encoder_global: int = 64
     """Width of each max-pooled global feature (object, background); 128 costs ~15 % of updates/s."""
-    encoder_knn: int = 0
-    """Neighbours of the optional EdgeConv layer over object points (0 = plain PointNet; k = 8 costs
-    ~40 % of hydo-cm's updates/s, bench/learner.py)."""
     length_scale: float = 0.1
     """Metres per network unit for positions and goal flow inside the encoder."""
     encoder_normals: bool = False
@@ -117,18 +97,9 @@ class AgentConfig:
     """Width of the motion policy / denoiser MLP."""
     critic_hidden: int = 64
     """Width of each Q head."""
-    critic_layer_norm: bool = False
-    """LayerNorm after the Q heads' first layer (off by default: ~2 ms of a ~30 ms update)."""
-    critic_bins: int = 0
-    """K > 0: categorical Q heads over K value bins trained with the HL-Gauss cross-entropy
-    (``heads.TwinQ``); 0: scalar Q heads and squared error (as HACMan and the paper)."""
     critic_motion_dirs: int = 0
     """k > 0: the Q heads' first layer also gets k bilinear terms ``u_j(f_i) · a`` (learned directions
     from the point's features dotted with the motion, ``heads.TwinQ``); 0: ``[f_i, a]`` only."""
-    critic_value_min: float = -4.0
-    """Lowest bin edge of a categorical critic (Q is in metres of goal flow summed over primitives)."""
-    critic_value_max: float = 0.5
-    """Highest bin edge of a categorical critic (above 0 only by the entropy bonuses)."""
     eval_weights: str = "average"
     """Weights that act in ``mode="eval"`` (evaluation, export, deploy): "average", the Polyak-averaged
     target encoder and critic (and TD3's target motion policy; SAC has no target policy, its online one
@@ -248,12 +219,6 @@ class AgentConfig:
             f"`actor_points` must be None or ≥ 1. Got {self.actor_points}.",
         )
         check(
-            self.critic_bins == 0
-            or (self.critic_bins >= 2 and self.critic_value_min < self.critic_value_max),
-            f"`critic_bins` must be 0 or ≥ 2 with critic_value_min < critic_value_max. Got {self.critic_bins}, "
-            f"[{self.critic_value_min}, {self.critic_value_max}].",
-        )
-        check(
             self.critic_motion_dirs >= 0, f"`critic_motion_dirs` must be ≥ 0. Got {self.critic_motion_dirs}."
         )
         for name in ("feature_dim", "encoder_hidden", "encoder_global", "actor_hidden", "critic_hidden"):
@@ -322,6 +287,13 @@ class AgentConfig:
     def from_dict(cls, d: dict[str, Any]) -> AgentConfig:
         """Inverse of :meth:`to_dict` (ignores the ``resolved`` record)."""
         names = {f.name for f in fields(cls)}
+        for key, inert in REMOVED_OPTIONS.items():
+            if key in d and d[key] != inert:
+                raise ValueError(
+                    f"`{key}` = {d[key]!r} was removed from hydo (docs/experiments.md); "
+                    "this checkpoint needs the version that made it"
+                )
+        d = {k: v for k, v in d.items() if k not in REMOVED_OPTIONS and k not in REMOVED_INERT}
         unknown = set(d) - names - {"resolved"}
         if unknown:
             raise ValueError(f"unknown AgentConfig fields: {sorted(unknown)}")
@@ -407,16 +379,12 @@ class HybridAgent:
                 out_dim=config.feature_dim,
                 hidden=config.encoder_hidden,
                 global_dim=config.encoder_global,
-                knn=config.encoder_knn,
                 length_scale=config.length_scale,
                 normals=config.encoder_normals,
             )
             self.critic = TwinQ(
                 config.feature_dim,
                 config.critic_hidden,
-                config.critic_layer_norm,
-                bins=config.critic_bins,
-                value_range=(config.critic_value_min, config.critic_value_max),
                 motion_dirs=config.critic_motion_dirs,
             )
             self.motion_policy: MotionPolicy = make_motion_policy(
@@ -510,8 +478,7 @@ class HybridAgent:
         mode: str = "explore",
         generator: torch.Generator | None = None,
         normals: torch.Tensor | None = None,
-        workspace: Workspace = SIM_WORKSPACE,
-        feasible_only: bool = True,
+        feasible: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
         """Choose ``(index (B,) int64, motion (B, 3) in [-1, 1])`` for a batch of observations.
 
@@ -528,9 +495,11 @@ class HybridAgent:
           Polyak-averaged encoder and critic).
 
         Q at each point is scored on the motion proposed at that point (TD3: Q1, as HACMan; SAC: the
-        twin minimum). With the object points' unit ``normals (B, N_obj, 3)`` and ``feasible_only``,
-        the location is chosen among the points whose push can run (``sim.primitive.feasible_points``
-        with ``workspace``; all points if none can). An encoder with ``encoder_normals`` needs them. ``info``: ``q (B, N_obj)`` (unmasked), ``q_select (B, N_obj)`` (the Q the
+        twin minimum). ``feasible`` is the feasibility mask, made by the caller where the observation
+        is made (``sim.primitive.feasibility_mask``): a function of the motions proposed at the object
+        points ``(B, N_obj, 3)`` → ``bool (B, N_obj)``; the location is then chosen among the points
+        whose push can run. None: among all object points. An encoder with ``encoder_normals`` needs
+        the object points' unit ``normals (B, N_obj, 3)``. ``info``: ``q (B, N_obj)`` (unmasked), ``q_select (B, N_obj)`` (the Q the
         location is chosen on: −inf at infeasible points), ``location_probs (B, N_obj)``,
         ``motions (B, N_obj, 3)``, ``motion_log_prob (B,)`` (log-prob estimate of the chosen point's
         motion).
@@ -546,10 +515,9 @@ class HybridAgent:
         q_twin = nets.critic(f, motions)  # (B, N_obj, 2)
         q = self.decision_q(q_twin)  # (B, N_obj)
         q_select = q
-        if normals is not None and feasible_only:
-            pts = points.numpy()
-            feasible = feasible_points(pts[:, :n], normals.numpy(), motions.numpy(), pts, workspace)
-            q_select = torch.from_numpy(mask_infeasible(q.numpy(), feasible)).to(q.dtype)
+        if feasible is not None:
+            allowed = torch.from_numpy(np.asarray(feasible(motions.numpy()), dtype=bool))  # (B, N_obj)
+            q_select = q.masked_fill(~allowed, -math.inf)
         probs, _ = location_policy(q_select, self.alpha_loc)  # (B, N_obj)
         if mode == "eval":
             index = q_select.argmax(-1)  # (B,)
@@ -649,18 +617,8 @@ class HybridAgent:
             target_q = batch.reward + cfg.gamma * (1.0 - batch.terminated) * v_next  # (B,)
 
         # 3. Critic loss on the executed (index, motion); trains encoder + critic.
-        if cfg.critic_bins:  # HL-Gauss: cross-entropy to the target smeared over bins (σ = 0.75 bin)
-            logits = self.critic.logits(f_taken, batch.motion)  # (B, 2, K)
-            edges = self.critic.bin_edges
-            probs = hl_gauss_targets(
-                target_q, edges, HL_GAUSS_SIGMA_BINS * float(edges[1] - edges[0])
-            )  # (B, K)
-            critic_loss = -(probs[:, None] * torch.log_softmax(logits, -1)).sum(-1).mean(0).sum()
-            with torch.no_grad():
-                q_taken = torch.softmax(logits, -1) @ self.critic.bin_centres  # (B, 2)
-        else:
-            q_taken = self.critic(f_taken, batch.motion)  # (B, 2)
-            critic_loss = F.mse_loss(q_taken[:, 0], target_q) + F.mse_loss(q_taken[:, 1], target_q)
+        q_taken = self.critic(f_taken, batch.motion)  # (B, 2)
+        critic_loss = F.mse_loss(q_taken[:, 0], target_q) + F.mse_loss(q_taken[:, 1], target_q)
         self.critic_optimizer.zero_grad(set_to_none=True)
         critic_loss.backward()
         self.critic_optimizer.step()
@@ -771,6 +729,7 @@ class HybridAgent:
                 if getattr(self.config, k) != v
             }
             raise ValueError(f"agent state was saved with a different config (saved, current): {diff}")
+        sd = self._drop_inert_layer_norm(sd)
         self.encoder.load_state_dict(sd["encoder"])
         self.critic.load_state_dict(sd["critic"])
         self.motion_policy.load_state_dict(sd["motion_policy"])
@@ -787,6 +746,27 @@ class HybridAgent:
             self.alpha_optimizer.load_state_dict(sd["alpha_optimizer"])
         self.n_updates = int(sd["n_updates"])
         self.generator.set_state(sd["generator"])
+
+    def _drop_inert_layer_norm(self, sd: dict[str, Any]) -> dict[str, Any]:
+        """Checkpoints made before the Q-head LayerNorm option was removed hold its never-used
+        parameters (``ln_weight``, ``ln_bias``: no gradient, no optimiser state). Drop them from the
+        critic's state dicts and renumber the critic optimiser's parameters to match."""
+        keys = list(sd["critic"])
+        if "ln_weight" not in keys:
+            return sd
+        sd = dict(sd)
+        n_enc = len(list(self.encoder.parameters()))
+        drop = {n_enc + keys.index("ln_weight"), n_enc + keys.index("ln_bias")}
+        for name in ("critic", "critic_target"):
+            sd[name] = {k: v for k, v in sd[name].items() if k not in ("ln_weight", "ln_bias")}
+        opt = sd["critic_optimizer"]
+        (group,) = opt["param_groups"]
+        new_id = {old: new for new, old in enumerate(i for i in group["params"] if i not in drop)}
+        sd["critic_optimizer"] = {
+            "state": {new_id[i]: v for i, v in opt["state"].items() if i not in drop},
+            "param_groups": [{**group, "params": list(range(len(new_id)))}],
+        }
+        return sd
 
     @classmethod
     def from_state_dict(cls, sd: dict[str, Any]) -> HybridAgent:

@@ -41,16 +41,12 @@ def tanh_log_det(u: torch.Tensor) -> torch.Tensor:
     return (2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))).sum(-1)
 
 
-def mlp(
-    sizes: Sequence[int], activation: type[nn.Module] = nn.ReLU, layer_norm: bool = False
-) -> nn.Sequential:
-    """``Linear → [LayerNorm] → act`` between consecutive ``sizes``; the last layer is linear only."""
+def mlp(sizes: Sequence[int], activation: type[nn.Module] = nn.ReLU) -> nn.Sequential:
+    """``Linear → act`` between consecutive ``sizes``; the last layer is linear only."""
     layers: list[nn.Module] = []
     for i in range(len(sizes) - 1):
         layers.append(nn.Linear(sizes[i], sizes[i + 1]))
         if i < len(sizes) - 2:
-            if layer_norm:
-                layers.append(nn.LayerNorm(sizes[i + 1]))
             layers.append(activation())
     return nn.Sequential(*layers)
 

@@ -57,7 +57,6 @@ class PointEncoder(nn.Module):
         out_dim: D, the per-point feature size fed to the heads.
         hidden: H, width of the per-point MLPs.
         global_dim: G, width of each max-pooled global feature (object and background).
-        knn: neighbours of the optional EdgeConv over object points; 0 disables it.
         length_scale: metres mapped to one network unit for positions and goal flow (objects are
             ~5–20 cm, the bin ~0.5 m, so 0.1 m keeps inputs at unit scale).
         normals: take the object points' normals ``(B, N_obj, 3)`` as a third input.
@@ -70,24 +69,18 @@ class PointEncoder(nn.Module):
         out_dim: int = 64,
         hidden: int = 64,
         global_dim: int = 64,
-        knn: int = 0,
         length_scale: float = 0.1,
         normals: bool = False,
     ) -> None:
         super().__init__()
         if n_obj < 1 or n_bg < 0:
             raise ValueError(f"`n_obj` must be ≥ 1 and `n_bg` ≥ 0. Got {n_obj}, {n_bg}.")
-        if knn < 0 or (knn > 0 and knn >= n_obj):
-            raise ValueError(f"`knn` must be in [0, n_obj). Got {knn} with n_obj={n_obj}.")
-        self.n_obj, self.n_bg, self.out_dim, self.knn = n_obj, n_bg, out_dim, knn
+        self.n_obj, self.n_bg, self.out_dim = n_obj, n_bg, out_dim
         self.uses_normals = normals
         self.register_buffer("inv_scale", torch.tensor(1.0 / length_scale))
         self.local = nn.Sequential(
             nn.Linear(10 if normals else 7, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU()
         )
-        if knn > 0:
-            self.edge_self = nn.Linear(hidden, hidden)
-            self.edge_nbr = nn.Linear(hidden, hidden, bias=False)
         self.global_proj = nn.Linear(hidden, global_dim)
         n_pools = 2 if n_bg > 0 else 1
         self.head_local = nn.Linear(hidden, hidden)
@@ -129,15 +122,7 @@ class PointEncoder(nn.Module):
         x = self.normalise(points, features, normals)
         h = self.local(x)  # (B, N, H)
         h_obj = h[:, : self.n_obj]  # (B, N_obj, H)
-        if self.knn > 0:
-            pos = x[:, : self.n_obj, :3]  # (B, N_obj, 3) normalised positions
-            d = torch.cdist(pos, pos)  # (B, N_obj, N_obj)
-            nbr = d.topk(self.knn + 1, dim=-1, largest=False).indices[..., 1:]  # (B, N_obj, k), self dropped
-            bh = self.edge_nbr(h_obj)  # (B, N_obj, H)
-            b_idx = torch.arange(h_obj.shape[0], device=h.device)[:, None, None]
-            nbr_max = bh[b_idx, nbr].amax(dim=2)  # (B, N_obj, H): max over the k neighbours
-            h_obj = h_obj + torch.relu(self.edge_self(h_obj) + nbr_max)
-        g_all = self.global_proj(h)  # (B, N, G); the EdgeConv refines heads, not the pooled context
+        g_all = self.global_proj(h)  # (B, N, G)
         pools = [g_all[:, : self.n_obj].max(dim=1).values]  # (B, G); max's backward is cheaper than amax's
         if self.n_bg > 0:
             pools.append(g_all[:, self.n_obj :].max(dim=1).values)  # (B, G)

@@ -36,8 +36,7 @@ import numpy as np
 import torch
 
 from sim.atomic import atomic_write
-
-FEATURE_DIM = 4
+from sim.contract import FEATURE_DIM
 
 
 class ReplayBatch(NamedTuple):
@@ -56,41 +55,31 @@ class ReplayBatch(NamedTuple):
     next_normals: torch.Tensor | None = None  # (B, N_obj, 3)
 
 
-AUGMENTATIONS = ("none", "yaw90")
-#: Rotations about z by 0, 90, 180 and 270 degrees (exact), indexed by the number of quarter turns.
-_QUARTER_TURNS = torch.tensor(
-    [[[1, 0, 0], [0, 1, 0], [0, 0, 1]], [[0, -1, 0], [1, 0, 0], [0, 0, 1]],
-     [[-1, 0, 0], [0, -1, 0], [0, 0, 1]], [[0, 1, 0], [-1, 0, 0], [0, 0, 1]]],
-    dtype=torch.float32,
-)  # fmt: skip
+class Transition(NamedTuple):
+    """What the trainer hands the replay: one transition (``points (N, 3)`` …) or ``E`` of them stacked
+    on a leading axis (``points (E, N, 3)`` …), numpy arrays.
 
-
-def rotate_yaw90(batch: ReplayBatch, quarter_turns: torch.Tensor) -> ReplayBatch:
-    """The same transitions in a world turned about z by ``quarter_turns (B,)`` × 90°.
-
-    Physics is invariant under rotations about gravity, so a turned transition (points, goal flows
-    and motion turned alike, reward and point order unchanged) is one the simulator would produce in a
-    turned bin. Multiples of 90° only: they map the motion box [-1, 1]³ onto itself, where other
-    angles would push motions out of it.
+    ``points``/``features`` are the observation the action was taken in; ``next_*`` the real next
+    observation even when the episode was truncated (the bootstrap needs it). ``normals`` /
+    ``next_normals`` ``(E, N_obj, 3)``: the object points' normals of both (stored as zeros when not
+    given; an encoder with ``encoder_normals`` needs them). For hindsight relabelling also give
+    ``goal_T (E, 4, 4)``, the goal pose in force (fixed over an episode), and ``achieved_T (E, 4, 4)``,
+    the object pose after the primitive (world transforms).
     """
-    rot = _QUARTER_TURNS[quarter_turns]  # (B, 3, 3)
 
-    def turn(v: torch.Tensor) -> torch.Tensor:  # (B, ..., 3) row vectors
-        shape = v.shape
-        return (v.reshape(shape[0], -1, 3) @ rot.transpose(1, 2)).reshape(shape)
-
-    def turn_features(f: torch.Tensor) -> torch.Tensor:  # (B, N, 4): is_object stays, flow turns
-        return torch.cat([f[..., :1], turn(f[..., 1:])], dim=-1)
-
-    return batch._replace(
-        points=turn(batch.points),
-        features=turn_features(batch.features),
-        motion=turn(batch.motion),
-        next_points=turn(batch.next_points),
-        next_features=turn_features(batch.next_features),
-        normals=None if batch.normals is None else turn(batch.normals),
-        next_normals=None if batch.next_normals is None else turn(batch.next_normals),
-    )
+    points: np.ndarray  # (E, N, 3) metres, world frame, object points first
+    features: np.ndarray  # (E, N, 4) [is_object, goal_flow_xyz (m)]
+    index: np.ndarray | int  # (E,) in [0, N_obj): the chosen object point
+    motion: np.ndarray  # (E, 3) in [-1, 1]
+    reward: np.ndarray | float  # (E,)
+    next_points: np.ndarray  # (E, N, 3)
+    next_features: np.ndarray  # (E, N, 4)
+    terminated: np.ndarray | bool  # (E,) ended by success / failure (no bootstrap)
+    truncated: np.ndarray | bool  # (E,) hit the primitive cap (still bootstraps)
+    goal_T: np.ndarray | None = None  # (E, 4, 4)
+    achieved_T: np.ndarray | None = None  # (E, 4, 4)
+    normals: np.ndarray | None = None  # (E, N_obj, 3)
+    next_normals: np.ndarray | None = None  # (E, N_obj, 3)
 
 
 def _available_memory_bytes() -> int | None:
@@ -175,35 +164,15 @@ class ReplayBuffer:
     def __len__(self) -> int:
         return self.capacity if self.full else self.pos
 
-    def add(
-        self,
-        points: np.ndarray,
-        features: np.ndarray,
-        index: np.ndarray | int,
-        motion: np.ndarray,
-        reward: np.ndarray | float,
-        next_points: np.ndarray,
-        next_features: np.ndarray,
-        terminated: np.ndarray | bool,
-        truncated: np.ndarray | bool,
-        goal_T: np.ndarray | None = None,
-        achieved_T: np.ndarray | None = None,
-        normals: np.ndarray | None = None,
-        next_normals: np.ndarray | None = None,
-    ) -> None:
-        """Store one transition (``points (N, 3)`` …) or a batch of them (``points (E, N, 3)`` …).
+    def add(self, transition: Transition) -> None:
+        """Store one :class:`Transition` or a batch of them.
 
-        ``points``/``features`` are the observation the action was taken in; ``next_*`` the real
-        next observation even when the episode was truncated (the bootstrap needs it). ``normals``
-        / ``next_normals`` ``(E, N_obj, 3)``: the object points' normals of both (stored as zeros
-        when not given; an encoder with ``encoder_normals`` needs them).
-
-        For hindsight relabelling also pass ``goal_T (E, 4, 4)``, the goal pose in force (fixed over
-        an episode), and ``achieved_T (E, 4, 4)``, the object pose after the primitive (world
-        transforms). Row ``k`` of a batch is then read as the next primitive of stream (env) ``k``:
-        consecutive rows of one stream are linked until one ends its episode (terminated or
+        For hindsight relabelling, row ``k`` of a batch is read as the next primitive of stream (env)
+        ``k``: consecutive rows of one stream are linked until one ends its episode (terminated or
         truncated), so add every env's transition in the same order at each step.
         """
+        (points, features, index, motion, reward, next_points, next_features, terminated, truncated,
+         goal_T, achieved_T, normals, next_normals) = transition  # fmt: skip
         points = np.asarray(points)
         single = points.ndim == 2
         cols = [points, features, index, motion, reward, next_points, next_features, terminated, truncated]
@@ -260,18 +229,14 @@ class ReplayBuffer:
         self.full = self.full or self.pos + e >= self.capacity
         self.pos = int((self.pos + e) % self.capacity)
 
-    def sample(self, batch_size: int, augment: str = "none", relabel_future: float = 0.0) -> ReplayBatch:
+    def sample(self, batch_size: int, relabel_future: float = 0.0) -> ReplayBatch:
         """Uniformly sample ``batch_size`` stored transitions (with replacement across calls).
 
         ``relabel_future = f`` relabels about a fraction ``f`` of them (those stored with poses) with a
-        goal reached later in their episode (:meth:`relabel`). ``augment="yaw90"`` turns each
-        transition's whole scene about the world z axis by a random multiple of 90°
-        (:func:`rotate_yaw90`).
+        goal reached later in their episode (:meth:`relabel`).
         """
         if len(self) == 0:
             raise ValueError("cannot sample from an empty replay buffer")
-        if augment not in AUGMENTATIONS:
-            raise ValueError(f"`augment` must be one of {list(AUGMENTATIONS)}. Got {augment!r}.")
         if not 0.0 <= relabel_future <= 1.0:
             raise ValueError(f"`relabel_future` must be in [0, 1]. Got {relabel_future}.")
         i = self.rng.integers(0, len(self), size=batch_size)
@@ -292,7 +257,7 @@ class ReplayBuffer:
         def t(x: np.ndarray, dtype=torch.float32) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(x)).to(device=self.device, dtype=dtype)
 
-        batch = ReplayBatch(
+        return ReplayBatch(
             points=t(cols["points"]),
             features=t(cols["features"]),
             index=t(self.index[i], torch.int64),
@@ -305,9 +270,6 @@ class ReplayBuffer:
             normals=t(self.normals[i]),
             next_normals=t(self.next_normals[i]),
         )
-        if augment == "yaw90":
-            batch = rotate_yaw90(batch, torch.from_numpy(self.rng.integers(0, 4, size=batch_size)))
-        return batch
 
     def future_slots(self, slots: np.ndarray) -> np.ndarray:
         """For each slot (S,), a uniformly drawn slot of the same episode at or after it (S,) int.

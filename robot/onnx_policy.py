@@ -21,7 +21,7 @@ import numpy as np
 from robot.errors import InputError, ModelLoadError
 from robot.onnx_interface import FILES, FORMAT, MANIFEST_KEYS
 from sim.contract import FEATURE_DIM, OBS_CONTRACT_VERSION
-from sim.primitive import SIM_WORKSPACE, Workspace, feasible_points, mask_infeasible
+from sim.primitive import FeasibilityMask
 
 
 def sha256_file(path: Path) -> str:
@@ -137,16 +137,15 @@ class OnnxPolicy:
         features: np.ndarray,
         noise: np.ndarray,
         normals: np.ndarray | None = None,
-        workspace: Workspace = SIM_WORKSPACE,
-        bin_box: tuple[np.ndarray, np.ndarray] | None = None,
-        feasible_only: bool = True,
+        feasible: FeasibilityMask | None = None,
     ) -> dict[str, np.ndarray]:
         """One batched decision. ``points (B, N, 3)``, ``features (B, N, 4)``, ``noise (B, N_obj, S, 3)``.
 
-        With the object points' ``normals (B, N_obj, 3)`` and ``feasible_only``, the argmax runs over
-        the points whose push can run (``sim.primitive.feasible_points`` with ``workspace`` and
-        ``bin_box``, as ``HybridAgent.act``; all points if none can). A model whose encoder takes
-        normals (``needs_normals``) refuses to decide without them.
+        ``feasible``: the feasibility mask made where the observation was made
+        (``sim.primitive.feasibility_mask``, with the cell's workspace and bin); the argmax then runs
+        over the points whose proposed push can run, as ``HybridAgent.act``. None: over every object
+        point. A model whose encoder takes the object points' ``normals (B, N_obj, 3)``
+        (``needs_normals``) refuses to decide without them.
 
         Returns ``index (B,)``, ``motion (B, 3)``, ``motions (B, N_obj, 3)``, ``q (B, N_obj)``.
         """
@@ -167,10 +166,7 @@ class OnnxPolicy:
         if not (np.all(np.isfinite(motions)) and np.all(np.isfinite(q_twin))):
             raise InputError("the policy produced NaN or inf (motion or Q): refusing to act")
         q = q_twin.min(-1) if self.manifest["q_reduction"] == "min" else q_twin[..., 0]
-        q_select = q
-        if normals is not None and feasible_only:
-            feasible = feasible_points(points[:, : self.n_obj], normals, motions, points, workspace, bin_box)
-            q_select = mask_infeasible(q, feasible)
+        q_select = q if feasible is None else np.where(feasible(motions), q, -np.inf)
         index = q_select.argmax(-1)
         rows = np.arange(len(index))
         return {"index": index, "motion": motions[rows, index], "motions": motions, "q": q}
@@ -187,11 +183,10 @@ class OnnxPolicy:
         features: np.ndarray,
         rng: np.random.Generator,
         normals: np.ndarray | None = None,
-        workspace: Workspace = SIM_WORKSPACE,
-        bin_box: tuple[np.ndarray, np.ndarray] | None = None,
+        feasible: FeasibilityMask | None = None,
     ):
-        """One observation (``points (N, 3)``, ``features (N, 4)``, optional ``normals (N_obj, 3)``)
-        → ``(index, motion (3,), info)``."""
+        """One observation (``points (N, 3)``, ``features (N, 4)``, optional ``normals (N_obj, 3)``, and
+        ``feasible`` made for the batch of one) → ``(index, motion (3,), info)``."""
         nrm = None if normals is None else np.asarray(normals)[None]
-        out = self.decide(points[None], features[None], self.noise(1, rng), nrm, workspace, bin_box)
+        out = self.decide(points[None], features[None], self.noise(1, rng), nrm, feasible)
         return int(out["index"][0]), out["motion"][0], {k: v[0] for k, v in out.items()}

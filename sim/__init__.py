@@ -1,11 +1,13 @@
 """hydo's simulator: native MuJoCo bin scene, object set, goals, observations, push primitive, env.
 
-``import sim`` registers ``hydo/Bin-v0`` with gymnasium::
+``import sim`` does nothing heavy (no mujoco, no gymnasium): the contract modules
+(``sim.contract``, ``sim.primitive``, ``sim.atomic``) are pure numpy, so the torch-free deploy path
+and the learner may import them. ``import sim.env`` registers ``hydo/Bin-v0`` with gymnasium::
 
-    import gymnasium, sim
+    import gymnasium, sim.env
     env = gymnasium.make("hydo/Bin-v0", goals="6d", objects="train", obs="mesh")
 
-Never imports torch: deploy reuses ``sim.contract`` and ``sim.primitive`` without it.
+Never imports torch.
 """
 
 import os
@@ -14,8 +16,3 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 # Offscreen rendering (rendered observations, videos) needs EGL chosen before mujoco is imported.
 os.environ.setdefault("MUJOCO_GL", "egl")
-
-import gymnasium  # noqa: E402
-
-if "hydo/Bin-v0" not in gymnasium.registry:
-    gymnasium.register(id="hydo/Bin-v0", entry_point="sim.env:BinEnv", disable_env_checker=True)

@@ -16,6 +16,8 @@ Reward ``r = −mean_i ‖goal_flow_i‖`` over object points; success when that
 
 from __future__ import annotations
 
+from enum import Enum
+
 import numpy as np
 
 #: Bump when the meaning or layout of an observation changes: exports record it, loaders check it.
@@ -24,6 +26,24 @@ OBS_CONTRACT_VERSION = 1
 FEATURE_DIM = 4  # [is_object, goal_flow_x, goal_flow_y, goal_flow_z]
 SUCCESS_THRESHOLD_M = 0.03  # mean goal-flow norm under which a goal counts as reached (metres)
 MAX_PRIMITIVES = 10  # primitives per episode before truncation
+
+
+class Goals(str, Enum):
+    """Goal mode: a planar goal (translation and yaw on the floor) or a 6D stable pose."""
+
+    planar = "planar"
+    sixd = "6d"
+
+
+class ObsSource(str, Enum):
+    """Where observations come from: object-mesh surface samples (fast, training) or rendered depth."""
+
+    mesh = "mesh"
+    render = "render"
+
+
+GOAL_MODES = tuple(g.value for g in Goals)
+OBS_SOURCES = tuple(o.value for o in ObsSource)
 
 #: Default point counts. Chosen by measurement (bench/learner.py): every gradient update is linear in
 #: N, and 128 + 128 keeps the planar task learnable while an update stays cheap on 2 CPU cores.

@@ -305,3 +305,7 @@ class BinEnv(gym.Env):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+if "hydo/Bin-v0" not in gym.registry:
+    gym.register(id="hydo/Bin-v0", entry_point="sim.env:BinEnv", disable_env_checker=True)

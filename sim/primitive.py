@@ -19,6 +19,7 @@ plan with any waypoint outside the workspace box is refused, never clipped.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -212,8 +213,31 @@ def feasible_points(
     return ok
 
 
-def mask_infeasible(q: np.ndarray, feasible: np.ndarray) -> np.ndarray:
-    """``q`` (B, N_obj) with infeasible points set to -inf, except in rows with no feasible point
-    (left as they are: the gate then refuses the plan with its reason)."""
-    feasible = feasible | ~feasible.any(-1, keepdims=True)
-    return np.where(feasible, q, -np.inf)
+#: The feasibility mask of one batch of observations, as a function of the motion the policy proposes
+#: at each object point: ``motions (B, N_obj, 3) in [-1, 1]`` → ``bool (B, N_obj)``.
+FeasibilityMask = Callable[[np.ndarray], np.ndarray]
+
+
+def feasibility_mask(
+    points: np.ndarray,
+    normals: np.ndarray,
+    workspace: Workspace = SIM_WORKSPACE,
+    bin_box: tuple[np.ndarray, np.ndarray] | None = None,
+) -> FeasibilityMask:
+    """The mask the location policy chooses under, made where the observation is made.
+
+    ``points (B, N, 3)``: the observed clouds, object points first (metres); ``normals (B, N_obj, 3)``:
+    the object points' unit normals. Whether a push can run depends on the motion proposed at the
+    point, which only the policy knows, so the mask is handed to the policy (``HybridAgent.act``,
+    ``OnnxPolicy.decide``) as a function of those motions: :func:`feasible_points` against the whole
+    cloud, with every point allowed in a row where none is feasible (the gate then refuses the plan
+    with its reason)."""
+    points = np.asarray(points)
+    normals = np.asarray(normals)
+    n_obj = normals.shape[1]
+
+    def mask(motions: np.ndarray) -> np.ndarray:
+        feasible = feasible_points(points[:, :n_obj], normals, motions, points, workspace, bin_box)
+        return feasible | ~feasible.any(-1, keepdims=True)
+
+    return mask

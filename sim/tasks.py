@@ -54,6 +54,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 
@@ -229,6 +230,8 @@ TASKS: dict[str, Task] = {
     ),
 }
 TASK_NAMES = tuple(TASKS)
+#: ``--task``: the names of ``TASKS``.
+TaskName = Enum("TaskName", {name.replace("-", "_"): name for name in TASKS}, type=str)
 
 
 def get_task(name: str) -> Task:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import sim  # noqa: F401
+import sim.env  # noqa: F401  (registers hydo/Bin-v0)
 from sim.baselines import heuristic_action
 from sim.contract import FEATURE_DIM, SUCCESS_THRESHOLD_M, validate_observation
 from sim.env import BinEnv

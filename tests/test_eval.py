@@ -4,13 +4,13 @@ import json
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from hydo_cli.evaluate import aggregate, compare_rows, failure_counts
 from hydo_cli.main import app
+from hydo_cli.report import aggregate, failure_counts
 from hydo_cli.rollout import EpisodeResult
+from hydo_cli.tables import compare_rows
 
 runner = CliRunner()
 
@@ -73,14 +73,14 @@ def test_multi_target_eval_writes_json_and_markdown(tmp_path):
         assert set(run["failures"]) == {"object_left_bin", "timeout", "primitive_rejected"}
         assert set(run["per_object"]) == {"cube"} and run["episodes_per_s"] > 0
     assert data["runs"][0]["stochastic"] is False and data["runs"][1]["stochastic"] is True
-    # 2 runs: the IQM is their mean, its CI bootstraps episodes within each run
-    rates = [run["success_rate"] for run in data["runs"]]
-    assert data["iqm"] == pytest.approx(np.mean(rates))
-    assert data["ci_low"] <= data["iqm"] <= data["ci_high"]
-    assert (
-        data["aggregate"]["all"]["ci_over"] == "episodes"
-        and "trims nothing" in data["aggregate"]["all"]["note"]
-    )
+    # two methods are never pooled: no IQM across them, one per method (its one run's rate)
+    assert data["iqm"] is None and data["aggregate"]["all"] is None
+    for run in data["runs"]:
+        own = data["aggregate"]["methods"][run["method"]]["all"]
+        assert (
+            own["iqm"] == pytest.approx(run["success_rate"]) and own["ci_low"] <= own["iqm"] <= own["ci_high"]
+        )
+        assert own["ci_over"] == "episodes" and "IQM is that run's score" in own["note"]
     text = md.read_text()
     assert "| run | method | success |" in text and "| heuristic |" in text and "| random |" in text
     assert "IQM" in text and not list(tmp_path.glob("**/.*.tmp"))  # atomic writes leave no temp files

@@ -9,9 +9,8 @@ import textwrap
 import numpy as np
 import pytest
 
-from hydo_cli.export import export_agent
-from hydo_cli.train import TrainConfig
-from hydo_cli.trainer import agent_config
+from hydo_cli.config import TrainConfig, agent_config
+from hydo_cli.onnx_export import export_agent
 from models.algos import HybridAgent
 from robot.errors import InputError, ModelLoadError
 from robot.onnx_policy import OnnxPolicy
@@ -41,21 +40,15 @@ def test_parity_and_manifest(exported):
     assert json.loads(props["algo"]) == cfg.algo
 
 
-@pytest.mark.parametrize(
-    "critic_options", [{"critic_bins": 16}, {"critic_bins": 16, "critic_motion_dirs": 4}]
-)
-def test_categorical_critic_exports_with_parity(tmp_path, critic_options):
-    """The HL-Gauss critic's softmax-over-bins mean (and the bilinear motion directions) export with the
-    same interface and tolerance."""
-    cfg = TrainConfig(algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent={**TINY, **critic_options})
+def test_critic_motion_directions_export_with_parity(tmp_path):
+    """The bilinear motion directions of the Q heads export with the same interface and tolerance."""
+    cfg = TrainConfig(
+        algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent={**TINY, "critic_motion_dirs": 4}
+    )
     agent = HybridAgent(agent_config(cfg))
     report = export_agent(agent, cfg, "pytest", tmp_path / "model", n_checks=32)
     assert report["max_abs_error_motion"] <= 1e-4 and report["max_abs_error_q"] <= 1e-4
     assert report["index_agreement"] == 1.0
-    policy = OnnxPolicy.load(tmp_path / "model")
-    q = policy.decide(*_observation(), noise=policy.noise(1, np.random.default_rng(0)))["q"]
-    lo, hi = agent.config.critic_value_min, agent.config.critic_value_max
-    assert q.shape == (1, 32) and np.all((q >= lo) & (q <= hi))
 
 
 def test_encoder_with_normals_exports_with_parity(tmp_path):
@@ -75,8 +68,8 @@ def test_encoder_with_normals_exports_with_parity(tmp_path):
     pts, feats = _observation()
     noise = policy.noise(1, np.random.default_rng(0))
     up = np.tile(np.float32([0, 0, 1]), (1, 32, 1))
-    a = policy.decide(pts, feats, noise, up, feasible_only=False)
-    b = policy.decide(pts, feats, noise, -up, feasible_only=False)
+    a = policy.decide(pts, feats, noise, up)
+    b = policy.decide(pts, feats, noise, -up)
     assert not np.allclose(a["q"], b["q"])  # the normals reach the graph
     with pytest.raises(InputError, match="normals"):
         policy.decide(pts, feats, noise)
@@ -213,9 +206,10 @@ def test_cli_export_refuses_bad_checkpoint(tmp_path):
 
 
 def test_onnx_policy_chooses_feasible_points(exported):
-    """With normals, the ONNX argmax runs over points whose push can start (as HybridAgent.act)."""
+    """With the feasibility mask, the ONNX argmax runs over points whose push can run (as
+    HybridAgent.act)."""
     from sim.env import BinEnv
-    from sim.primitive import feasible_points
+    from sim.primitive import feasibility_mask, feasible_points
 
     policy = OnnxPolicy.load(exported[0])
     env = BinEnv("train", "planar", n_obj=policy.n_obj, n_bg=policy.n_bg)
@@ -225,11 +219,11 @@ def test_onnx_policy_chooses_feasible_points(exported):
         obs, _ = env.reset(seed=ep)
         pts, feats, nrm = obs["points"][None], obs["features"][None], obs["normals"][None]
         noise = policy.noise(1, rng)
-        out = policy.decide(pts, feats, noise, nrm)
+        out = policy.decide(pts, feats, noise, nrm, feasibility_mask(pts, nrm))
         feasible = feasible_points(pts[:, : policy.n_obj], nrm, out["motions"], pts)
         if feasible.any():
             assert feasible[0, out["index"][0]]
-        plain = policy.decide(pts, feats, noise)  # without normals: the plain argmax of Q
+        plain = policy.decide(pts, feats, noise, nrm)  # without a mask: the plain argmax of Q
         assert plain["index"][0] == out["q"].argmax(-1)[0]
         masked_rows += not feasible[0, plain["index"][0]]
     assert masked_rows > 0  # the mask changed at least one decision: the test has material

@@ -13,8 +13,8 @@ from sim.primitive import (
     START_TOLERANCE_M,
     PrimitiveRejected,
     check_plan,
+    feasibility_mask,
     feasible_points,
-    mask_infeasible,
     plans_inside,
     primitive_waypoints,
     start_clear,
@@ -78,12 +78,17 @@ def test_prediction_matches_the_simulator_on_random_pushes():
     assert counts["caught"] >= 0.8 * counts["refused"], counts
 
 
-def test_mask_keeps_rows_without_any_feasible_point():
-    q = np.array([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
-    feasible = np.array([[True, True, False], [False, False, False]])
-    out = mask_infeasible(q, feasible)
-    assert out[0].argmax() == 1 and np.isneginf(out[0, 2])
-    np.testing.assert_array_equal(out[1], q[1])
+def test_mask_allows_every_point_in_rows_without_a_feasible_one():
+    """Row 0: one point whose push heads into the wall is masked; row 1: every push is refused, so the
+    mask allows all points (the gate then refuses the plan with its reason)."""
+    point = np.array([[[0.0, -0.1, 0.03], [0.0, 0.0, 0.03]], [[0.0, -0.1, 0.03], [0.0, -0.1, 0.03]]])
+    normal = np.broadcast_to(np.array([0.0, 1.0, 0.0]), point.shape)
+    cloud = np.concatenate([point, np.zeros((2, 1, 3))], axis=1)  # object points first, one floor point
+    toward_wall, away = [0.0, -1.0, 0.0], [0.0, 1.0, 0.0]
+    motions = np.array([[toward_wall, away], [toward_wall, toward_wall]])
+    mask = feasibility_mask(cloud, normal)(motions)
+    assert mask.shape == (2, 2) and mask.dtype == bool
+    np.testing.assert_array_equal(mask, [[False, True], [True, True]])
 
 
 @pytest.mark.parametrize("algo", ["hacman", "hydo-cm"])
@@ -96,8 +101,9 @@ def test_agent_only_chooses_feasible_points(algo):
         obs, _ = env.reset(seed=ep)
         pts, feats = torch.from_numpy(obs["points"][None]), torch.from_numpy(obs["features"][None])
         normals = torch.from_numpy(obs["normals"][None])
+        mask = feasibility_mask(obs["points"][None], obs["normals"][None])
         for mode in ("explore", "eval"):
-            index, _, info = agent.act(pts, feats, mode=mode, generator=g, normals=normals)
+            index, _, info = agent.act(pts, feats, mode=mode, generator=g, normals=normals, feasible=mask)
             feasible = feasible_points(
                 obs["points"][None, :32], obs["normals"][None], info["motions"].numpy(), obs["points"][None]
             )

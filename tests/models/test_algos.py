@@ -8,8 +8,6 @@ from learner_util import SMALL, random_obs
 
 from models.algos import (
     ALGOS,
-    EVAL_CHAIN_NOISE,
-    EVAL_WEIGHTS,
     AgentConfig,
     HybridAgent,
     actor_surrogate_weights,
@@ -207,13 +205,6 @@ def test_eval_acts_with_the_averaged_weights(algo):
     assert not torch.allclose(q("eval"), q_eval)
     with pytest.raises(ValueError, match=r"`eval_weights` must be one of \['average', 'online'\]"):
         AgentConfig(eval_weights="ema")
-
-
-def test_eval_weights_option_matches_the_agent():
-    from hydo_cli.options import ChainNoise, EvalWeights
-
-    assert [w.value for w in EvalWeights] == list(EVAL_WEIGHTS)
-    assert [c.value for c in ChainNoise] == list(EVAL_CHAIN_NOISE)
 
 
 def test_zero_chain_noise_makes_eval_deterministic_and_exports_so():

@@ -25,15 +25,6 @@ def test_translation_invariant_and_permutation_equivariant():
     assert torch.allclose(enc(points[:, order], features[:, order]), out[:, perm], atol=1e-5)
 
 
-def test_knn_edgeconv_variant():
-    enc = PointEncoder(16, 8, hidden=32, global_dim=32, knn=4)
-    points, features = random_obs(2, 16, 8)
-    out = enc(points, features)
-    assert out.shape == (2, 16, 64) and torch.isfinite(out).all()
-    out.sum().backward()
-    assert enc.edge_nbr.weight.grad.abs().sum() > 0
-
-
 def test_bad_shapes_raise():
     enc = PointEncoder(16, 8)
     points, features = random_obs(2, 16, 8)

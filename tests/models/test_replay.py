@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from models.replay import ReplayBuffer, rotate_yaw90
+from models.replay import ReplayBuffer, Transition
 
 
 def transition(rng, n_obj=4, n_bg=4, e=None):
@@ -27,7 +27,7 @@ def test_round_trip_single_and_batched():
     rng = np.random.default_rng(0)
     buf = ReplayBuffer(10, 4, 4)
     t = transition(rng)
-    buf.add(**t)
+    buf.add(Transition(**t))
     batch = buf.sample(3)
     assert batch.points.dtype == torch.float32 and batch.points.shape == (3, 8, 3)
     assert batch.index.dtype == torch.int64
@@ -36,7 +36,7 @@ def test_round_trip_single_and_batched():
     assert batch.index[0].item() == t["index"]
     np.testing.assert_array_equal(batch.motion[0].numpy(), t["motion"])  # motions exact, in [-1, 1]
     assert batch.terminated[0].item() == 1.0 and batch.truncated[0].item() == 0.0
-    buf.add(**transition(rng, e=5))
+    buf.add(Transition(**transition(rng, e=5)))
     assert len(buf) == 6
 
 
@@ -44,7 +44,7 @@ def test_terminated_and_truncated_are_kept_apart():
     rng = np.random.default_rng(1)
     buf = ReplayBuffer(64, 4, 4)
     t = transition(rng, e=64)
-    buf.add(**t)
+    buf.add(Transition(**t))
     np.testing.assert_array_equal(buf.terminated, t["terminated"])
     np.testing.assert_array_equal(buf.truncated, t["truncated"])
     assert (buf.terminated != buf.truncated).any()
@@ -57,7 +57,7 @@ def test_fifo_wraps_around():
     for _ in range(6):
         t = transition(rng)
         rewards.append(t["reward"])
-        buf.add(**t)
+        buf.add(Transition(**t))
     assert len(buf) == 4 and buf.full
     assert sorted(buf.reward.tolist()) == pytest.approx(sorted(rewards[2:]))
 
@@ -76,17 +76,17 @@ def test_rejects_bad_input():
     rng = np.random.default_rng(3)
     buf = ReplayBuffer(4, 4, 4)
     with pytest.raises(ValueError, match="`index` must be in"):
-        buf.add(**{**transition(rng), "index": 4})  # a background point
+        buf.add(Transition(**{**transition(rng), "index": 4}))  # a background point
     with pytest.raises(ValueError, match="`points` must have shape"):
-        buf.add(**{**transition(rng), "points": np.zeros((7, 3), np.float32)})
+        buf.add(Transition(**{**transition(rng), "points": np.zeros((7, 3), np.float32)}))
     with pytest.raises(ValueError, match="`motion` must lie in"):
-        buf.add(**{**transition(rng), "motion": np.full(3, 1.5, np.float32)})
+        buf.add(Transition(**{**transition(rng), "motion": np.full(3, 1.5, np.float32)}))
 
 
 def test_save_load_resumes_sampling(tmp_path):
     rng = np.random.default_rng(4)
     buf = ReplayBuffer(16, 4, 4, seed=3)
-    buf.add(**transition(rng, e=10))
+    buf.add(Transition(**transition(rng, e=10)))
     buf.sample(4)
     buf.save(tmp_path / "replay.npz")
     loaded = ReplayBuffer.load(tmp_path / "replay.npz")
@@ -95,46 +95,6 @@ def test_save_load_resumes_sampling(tmp_path):
     for x, y in zip(a, b, strict=True):
         assert torch.equal(x, y)
     assert not list(tmp_path.glob(".*.tmp"))
-
-
-def test_yaw90_turns_points_flows_and_motion_alike():
-    rng = np.random.default_rng(1)
-    buf = ReplayBuffer(4, 4, 4)
-    t = transition(rng)
-    t["motion"] = np.array([1.0, 0.5, -0.2], np.float32)
-    buf.add(**t, normals=rng.normal(size=(4, 3)), next_normals=rng.normal(size=(4, 3)))
-    batch = buf.sample(1)
-    turned = rotate_yaw90(batch, torch.tensor([1]))  # +90° about z: (x, y, z) -> (-y, x, z)
-    np.testing.assert_array_equal(turned.motion[0].numpy(), np.float32([-0.5, 1.0, -0.2]))
-    for name in ("points", "next_points", "normals", "next_normals"):
-        p, q = getattr(batch, name)[0], getattr(turned, name)[0]
-        np.testing.assert_allclose(
-            q.numpy(), torch.stack([-p[:, 1], p[:, 0], p[:, 2]], -1).numpy(), atol=1e-7
-        )
-    for name in ("features", "next_features"):
-        f, g = getattr(batch, name)[0], getattr(turned, name)[0]
-        np.testing.assert_array_equal(g[:, 0].numpy(), f[:, 0].numpy())  # is_object unchanged
-        np.testing.assert_allclose(
-            g[:, 1:].numpy(), torch.stack([-f[:, 2], f[:, 1], f[:, 3]], -1).numpy(), atol=1e-7
-        )
-    for name in ("index", "reward", "terminated", "truncated"):
-        assert torch.equal(getattr(turned, name), getattr(batch, name))
-    four = batch
-    for _ in range(4):
-        four = rotate_yaw90(four, torch.tensor([1]))
-    np.testing.assert_allclose(four.points.numpy(), batch.points.numpy(), atol=1e-6)
-
-
-def test_sampling_with_yaw90_uses_all_four_turns_and_keeps_motions_in_the_box():
-    rng = np.random.default_rng(2)
-    buf = ReplayBuffer(8, 4, 4, seed=0)
-    t = transition(rng)
-    t["motion"] = np.array([1.0, -1.0, 0.3], np.float32)
-    buf.add(**t)
-    seen = {tuple(m) for m in buf.sample(64, augment="yaw90").motion.double().numpy().round(3).tolist()}
-    assert seen == {(1.0, -1.0, 0.3), (1.0, 1.0, 0.3), (-1.0, 1.0, 0.3), (-1.0, -1.0, 0.3)}
-    with pytest.raises(ValueError, match="augment"):
-        buf.sample(2, augment="flip")
 
 
 def _pose(rng, planar=True):
@@ -196,7 +156,7 @@ def test_hindsight_relabel_gives_the_flow_to_a_later_achieved_pose():
     for t in range(5):  # two envs interleaved, as the trainer adds them
         rows = [ep[t] for ep in (ep_a, ep_b) if t < len(ep)]
         stack = {k: np.stack([np.asarray(r[k]) for r in rows]) for k in rows[0]}
-        buf.add(**stack)
+        buf.add(Transition(**stack))
     assert len(buf) == 9
     seen_future, seen_now = 0, 0
     for _ in range(20):
@@ -237,7 +197,7 @@ def test_relabelled_episode_end_reaches_its_own_pose_and_off_keeps_the_batch():
     ep[-1]["terminated"], ep[-1]["truncated"] = True, False  # e.g. the object left the bin
     buf = ReplayBuffer(16, n_obj, 4, seed=0)
     for row in ep:
-        buf.add(**row)
+        buf.add(Transition(**row))
     batch = buf.sample(64, relabel_future=1.0)
     last = np.isclose(batch.points[:, 0, 0].numpy(), ep[-1]["points"][0, 0], atol=2e-4)
     # the last transition's only future is itself: its goal becomes the pose it reached
@@ -257,12 +217,12 @@ def test_relabel_links_survive_save_and_load(tmp_path):
     ep, _ = _episode(rng, local, 4, _pose(rng))
     buf = ReplayBuffer(16, 8, 4, seed=0)
     for row in ep[:2]:
-        buf.add(**row)
+        buf.add(Transition(**row))
     buf.save(tmp_path / "r.npz")
     back = ReplayBuffer.load(tmp_path / "r.npz")
     for row in ep[2:]:
-        buf.add(**row)
-        back.add(**row)
+        buf.add(Transition(**row))
+        back.add(Transition(**row))
     np.testing.assert_array_equal(back.next_slot, buf.next_slot)
     np.testing.assert_array_equal(back.achieved_T, buf.achieved_T)
     a, b = buf.sample(16, relabel_future=0.5), back.sample(16, relabel_future=0.5)
@@ -274,12 +234,12 @@ def test_normals_are_stored_for_both_observations():
     buf = ReplayBuffer(8, 4, 4)
     t = transition(rng, e=3)
     normals, next_normals = rng.normal(size=(2, 3, 4, 3)).astype(np.float32)
-    buf.add(**t, normals=normals, next_normals=next_normals)
+    buf.add(Transition(**t, normals=normals, next_normals=next_normals))
     np.testing.assert_allclose(buf.normals[:3], normals, atol=2e-3)  # float16
     np.testing.assert_allclose(buf.next_normals[:3], next_normals, atol=2e-3)
-    buf.add(**transition(rng))  # without normals: zeros, never the previous occupant's
+    buf.add(Transition(**transition(rng)))  # without normals: zeros, never the previous occupant's
     np.testing.assert_array_equal(buf.normals[3], 0.0)
     batch = buf.sample(5)
     assert batch.normals.shape == (5, 4, 3) and batch.next_normals.dtype == torch.float32
     with pytest.raises(ValueError, match="`normals` must have shape"):
-        buf.add(**transition(rng), normals=np.zeros((5, 3)))
+        buf.add(Transition(**transition(rng), normals=np.zeros((5, 3))))

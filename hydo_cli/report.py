@@ -1,0 +1,138 @@
+"""What ``hydo eval`` reports: per-run summaries and their aggregation (IQM [95 % CI] per method).
+
+Runs are aggregated within a method only (a method is the run's algo, or a baseline's name): pooling
+runs of different methods would mix what Table I compares.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+#: Table I's columns, in the paper's order.
+COMPARE_SPLITS = ("unseen-category", "unseen-instance", "train")
+SPLIT_TITLES = {
+    "unseen-category": "Unseen Category",
+    "unseen-instance": "Unseen Instance",
+    "train": "Training Objects",
+}
+#: The paper's method names (design.md §1), in Table I's row order; baselines after them.
+METHOD_NAMES = {
+    "hacman": "HACMan",
+    "hacman-diff": "HACMan + Diff",
+    "hacman-cm": "HACMan + CM",
+    "hydo-gauss": "HyDo (w/o Diff)",
+    "hydo": "HyDo",
+    "hydo-cm": "HyDo + CM",
+    "heuristic": "heuristic",
+    "random": "random",
+}
+
+
+# --- the command ---------------------------------------------------------------------------------
+
+
+def failure_counts(results: Sequence) -> dict[str, int]:
+    """Failed episodes by end reason, plus those with at least one refused primitive (overlapping)."""
+    failed = [r for r in results if not r.success]
+    return {
+        "object_left_bin": sum(r.failure == "object_left_bin" for r in failed),
+        "timeout": sum(r.failure == "timeout" for r in failed),
+        "primitive_rejected": sum(r.rejected > 0 for r in failed),
+    }
+
+
+def run_summary(results: Sequence, task=None) -> dict:
+    """Success, steps, failures, per-object breakdown (and behaviour entropy for a task) of one run."""
+    from hydo_cli.rollout import summarize
+
+    s = summarize(results)
+    per_object: dict[str, list[bool]] = {}
+    for r in results:
+        per_object.setdefault(r.object, []).append(r.success)
+    out = {
+        "episodes": s["episodes"],
+        "success_rate": s["success_rate"],
+        "mean_steps_to_success": s["mean_steps_to_success"],
+        "mean_return": s["mean_return"],
+        "mean_final_distance_m": s["mean_final_distance_m"],
+        "failures": failure_counts(results),
+        "rejected_primitives": s["rejected_primitives"],
+        "episodes_with_rejected": sum(r.rejected > 0 for r in results),
+        "per_object": {
+            k: {"episodes": len(v), "success_rate": float(np.mean(v))} for k, v in sorted(per_object.items())
+        },
+    }
+    if task is not None:
+        from sim.tasks import behaviour_entropy
+
+        ids = behaviour_ids(results)
+        counts = np.bincount(ids[ids >= 0], minlength=task.n_behaviours)
+        out.update(
+            behaviour_entropy=float(behaviour_entropy(ids, task.n_behaviours)),
+            behaviours_seen=int((counts > 0).sum()),
+            behaviour_counts={str(b): int(n) for b, n in enumerate(counts) if n},
+            episodes_without_behaviour=int((ids < 0).sum()),
+        )
+    return out
+
+
+def behaviour_ids(results: Sequence) -> np.ndarray:
+    """Behaviour ids (n,) int, -1 where an episode has none."""
+    return np.array([-1 if r.behaviour is None else r.behaviour for r in results], dtype=np.int64)
+
+
+def method_key(method: str) -> tuple[int, str]:
+    order = list(METHOD_NAMES)
+    return (order.index(method) if method in order else len(order), method)
+
+
+# --- aggregation ---------------------------------------------------------------------------------
+def aggregate(runs: list[dict], splits: Sequence[str], seed: int, task=None) -> dict:
+    """IQM [CI] per method across its runs (strata: splits) and per method and split; entropy for a
+    task. ``all`` (and ``behaviour_entropy``) summarise every run only when they are one method's, else
+    None: runs of different methods are never pooled."""
+    from hydo_cli.stats import interval_estimate
+
+    def successes(run):
+        return np.array([e["success"] for e in run["episodes_detail"]], dtype=np.float64)
+
+    def estimate(selected: list[dict], by_split: Sequence[str]) -> dict:
+        strata = [[successes(r) for r in selected if r["objects"] == sp] for sp in by_split]
+        return interval_estimate(strata, seed=seed).as_dict()
+
+    def entropy_estimate(selected: list[dict]) -> dict:
+        from sim.tasks import behaviour_entropy
+
+        def score(ids, axis=-1):
+            return behaviour_entropy(np.asarray(ids).astype(np.int64), task.n_behaviours, axis=axis)
+
+        strata = [[behaviour_ids_from_detail(r).astype(np.float64) for r in selected]]
+        return interval_estimate(strata, run_score=score, seed=seed, episode_bootstrap=False).as_dict()
+
+    out = {"all": None, "methods": {}}
+    methods = sorted({r["method"] for r in runs}, key=method_key)
+    for m in methods:
+        mine = [r for r in runs if r["method"] == m]
+        entry = {
+            "name": METHOD_NAMES.get(m, m),
+            "targets": sorted({r["target"] for r in mine}, key=[r["target"] for r in mine].index),
+            "all": estimate(mine, splits),
+            "splits": {sp: estimate(mine, [sp]) for sp in splits},
+        }
+        if task is not None:
+            entry["behaviour_entropy"] = entropy_estimate(mine)
+        out["methods"][m] = entry
+    if len(methods) == 1:  # across runs only within a method: "all" is that method's
+        (only,) = out["methods"].values()
+        out["all"] = only["all"]
+        if task is not None:
+            out["behaviour_entropy"] = only["behaviour_entropy"]
+    return out
+
+
+def behaviour_ids_from_detail(run: dict) -> np.ndarray:
+    return np.array(
+        [-1 if e["behaviour"] is None else e["behaviour"] for e in run["episodes_detail"]], dtype=np.int64
+    )

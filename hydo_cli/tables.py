@@ -1,0 +1,169 @@
+"""Rendering a ``hydo eval`` report: console tables (rich) and Markdown."""
+
+from __future__ import annotations
+
+import sys
+
+from rich.console import Console
+from rich.table import Table
+
+from hydo_cli.report import METHOD_NAMES, SPLIT_TITLES
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{x:.1%}"
+
+
+def run_rows(report: dict) -> tuple[list[str], list[list[str]]]:
+    """Header and rows of the per-run table (shared by the console and Markdown)."""
+    compare, task = report["compare"], report["task"]
+    header = ["run", "method"] + (["objects"] if compare else [])
+    header += ["success", "steps to success", "left bin", "timeout", "refused", "refused prims"]
+    header += (["entropy", "behaviours"] if task else []) + ["policy", "ep/s"]
+    rows = []
+    for r in report["runs"]:
+        f = r["failures"]
+        steps = r["mean_steps_to_success"]
+        row = [r["target"], METHOD_NAMES.get(r["method"], r["method"])] + ([r["objects"]] if compare else [])
+        row += [
+            f"{r['success_rate']:.1%} ({round(r['success_rate'] * r['episodes'])}/{r['episodes']})",
+            "-" if steps is None else f"{steps:.2f}",
+            str(f["object_left_bin"]),
+            str(f["timeout"]),
+            str(f["primitive_rejected"]),
+            str(r["rejected_primitives"]),
+        ]
+        if task:
+            row += [
+                f"{r['behaviour_entropy']:.3f}",
+                f"{r['behaviours_seen']}/{report['task']['n_behaviours']}",
+            ]
+        row += ["stochastic" if r["stochastic"] else "deterministic", f"{r['episodes_per_s']:.1f}"]
+        rows.append(row)
+    return header, rows
+
+
+def compare_rows(report: dict) -> tuple[list[str], list[list[str]]]:
+    """Table I: method x split, each cell IQM [95% CI] of the success rate across that method's runs."""
+    task = report["task"]
+    splits = report["splits"]
+    if task:
+        header = ["Method", "Success", "Behaviour entropy", "Runs"]
+    else:
+        header = ["Method"] + [SPLIT_TITLES.get(s, s) for s in splits] + ["Runs"]
+    rows = []
+    for m in report["aggregate"]["methods"].values():
+        cells = [cell(m["splits"][s]) for s in splits]
+        if task:
+            cells.append(cell(m["behaviour_entropy"]))
+        rows.append([m["name"], *cells, str(len(m["targets"]))])
+    return header, rows
+
+
+def cell(e: dict) -> str:
+    """``0.760 [0.718, 0.802]`` from an ``Estimate.as_dict()`` (``stats.Estimate.cell``)."""
+    from hydo_cli.stats import format_cell
+
+    return format_cell(e["iqm"], e["ci_low"], e["ci_high"])
+
+
+def object_rows(report: dict, split: str) -> tuple[list[str], list[list[str]]]:
+    runs = [r for r in report["runs"] if r["objects"] == split]
+    objects = sorted({o for r in runs for o in r["per_object"]})
+    header = ["object"] + [r["target"] for r in runs]
+    rows = []
+    for o in objects:
+        cells = []
+        for r in runs:
+            p = r["per_object"].get(o)
+            cells.append("-" if p is None else f"{p['success_rate']:.0%} ({p['episodes']})")
+        rows.append([o, *cells])
+    return header, rows
+
+
+def rich_table(title: str, header: list[str], rows: list[list[str]]) -> Table:
+    table = Table(title=title, title_justify="left")
+    for h in header:
+        table.add_column(h)
+    for row in rows:
+        table.add_row(*row)
+    return table
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    def esc(c: str) -> str:
+        return str(c).replace("|", "\\|")
+
+    lines = ["| " + " | ".join(esc(h) for h in header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(esc(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def setup_line(report: dict) -> str:
+    if report["task"]:
+        where = f"task {report['task']['name']} (fixed start, |B| = {report['task']['n_behaviours']})"
+    else:
+        where = f"objects {', '.join(report['splits'])}, {report['goals']} goals, clutter {report['clutter']}"
+    return (
+        f"{where}; {report['obs']} observations; {report['episodes']} episodes per run and split; "
+        f"seed {report['seed']}"
+    )
+
+
+def markdown_report(report: dict) -> str:
+    """The whole report as Markdown: setup, Table I (--compare), runs, IQM, per-object success."""
+    agg = report["aggregate"]
+    out = ["# hydo eval", "", f"`{report['command']}`", "", setup_line(report) + ".", ""]
+    if report["compare"]:
+        title = "Behaviour diversity" if report["task"] else "Table I: success rate"
+        out += [f"## {title}, IQM [95% CI] across runs", "", markdown_table(*compare_rows(report)), ""]
+        for m in agg["methods"].values():
+            line = f"- {m['name']} ({', '.join(m['targets'])}): {next(iter(m['splits'].values()))['note']}"
+            if report["task"]:
+                line += f"; behaviour entropy: {m['behaviour_entropy']['note'].split('; ', 1)[-1]}"
+            out.append(line + ".")
+        out.append("")
+    out += ["## Runs", "", markdown_table(*run_rows(report)), ""]
+    out += ["## IQM across runs, per method", ""]
+    for m in agg["methods"].values():
+        out.append(f"- {m['name']}: success rate IQM {cell(m['all'])}: {m['all']['note']}.")
+        if report["task"]:
+            out.append(f"- {m['name']}: behaviour entropy IQM {cell(m['behaviour_entropy'])}.")
+    out.append("")
+    for split in report["splits"]:
+        header, rows = object_rows(report, split)
+        if len(rows) > 1:
+            out += [f"## Success per object: {split}", "", markdown_table(header, rows), ""]
+    out += [
+        "Columns: `left bin` / `timeout` count failed episodes by how they ended; `refused` counts failed "
+        "episodes with at least one refused primitive (also counted under their end reason); "
+        "`refused prims` counts refused primitives in all episodes. Statistics: `hydo_cli/stats.py`; "
+        "behaviour descriptors: `sim/tasks.py`.",
+        "",
+    ]
+    return "\n".join(out)
+
+
+def print_report(report: dict) -> None:
+    out = Console() if sys.stdout.isatty() else Console(width=160)  # logs and pipes: no 80-column wrap
+    out.print(rich_table(f"hydo eval: {setup_line(report)}", *run_rows(report)))
+    agg = report["aggregate"]
+    if report["compare"]:
+        title = "Behaviour diversity" if report["task"] else "Table I: success rate"
+        out.print(rich_table(f"{title}, IQM [95% CI] across runs", *compare_rows(report)))
+    else:
+        for split in report["splits"]:
+            header, rows = object_rows(report, split)
+            if 1 < len(rows) <= 60:
+                out.print(rich_table(f"success per object ({split})", header, rows))
+    for m in agg["methods"].values():  # never pooled across methods
+        a = m["all"]
+        out.print(
+            f"{m['name']}: success rate IQM across its runs: [bold]{cell(a)}[/]  ({a['note']})",
+            highlight=False,
+        )
+        if report["task"]:
+            e = m["behaviour_entropy"]
+            out.print(
+                f"{m['name']}: behaviour entropy IQM across its runs: [bold]{cell(e)}[/]", highlight=False
+            )
