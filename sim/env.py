@@ -39,14 +39,15 @@ from sim.contract import (
     DEFAULT_N_BG,
     DEFAULT_N_OBJ,
     FEATURE_DIM,
+    GOAL_MODES,
     MAX_PRIMITIVES,
+    OBS_SOURCES,
     build_observation,
     pose_matrix,
     reward_and_success,
     transform_points,
 )
 from sim.goals import (
-    GOAL_MODES,
     footprint_radius,
     sample_object,
     sample_placement,
@@ -82,8 +83,8 @@ class BinEnv(gym.Env):
             raise ValueError(f"`goals` must be one of {list(GOAL_MODES)}. Got {goals!r}.")
         if clutter not in CLUTTER_CHOICES:
             raise ValueError(f"`clutter` must be one of {list(CLUTTER_CHOICES)}. Got {clutter!r}.")
-        if obs not in ("mesh", "render"):
-            raise ValueError(f"`obs` must be one of ['mesh', 'render']. Got {obs!r}.")
+        if obs not in OBS_SOURCES:
+            raise ValueError(f"`obs` must be one of {list(OBS_SOURCES)}. Got {obs!r}.")
         self.task = None if task is None else get_task(task)  # behaviour-diversity variant (sim.tasks)
         if self.task is not None:
             if task_start not in ("fixed", "random"):

@@ -37,7 +37,6 @@ WALL_MARGIN_M = 0.02  # keep sampled object footprints this far from the bin wal
 #: metres), as HACMan drops objects above the bin's centre: the Panda palm is 20 cm wide, so a hand
 #: between an object and a wall needs room that the outer 10 cm of the bin does not have.
 PLACEMENT_HALF_M = np.array([0.12, 0.14])
-GOAL_MODES = ("planar", "6d")
 MIN_GOAL_DISTANCE_M = 0.05  # a goal must start further than the success threshold (with margin)
 GOAL_TRIES = 100  # start/goal pairs drawn before the last one is kept, however close
 

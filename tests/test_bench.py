@@ -1,0 +1,43 @@
+"""Every bench/ script runs end to end for a moment and writes the JSON its docstring promises.
+
+Smoke tests only: speed figures are measured by running the scripts themselves (never asserted here)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+OLD_RUN = ROOT / "tests" / "data" / "old-run-v0"  # a tiny run with metrics.jsonl and eval.jsonl
+
+CASES = {
+    "curves.py": ([str(OLD_RUN)], lambda d: d),
+    "learner.py": (["--algos", "hydo-cm", "--seconds", "1", "--threads", "1"], lambda d: d),
+    "inference.py": (["--runs", "3"], lambda d: d["ort_ms_median"] > 0),
+    "lookahead.py": (["--candidates", "4", "--episodes", "1"], lambda d: "C=4" in d),
+    "sim.py": (["--seconds", "1"], lambda d: d["mesh_steps_per_s"] > 0),
+}
+
+
+def test_every_bench_script_has_a_smoke_case():
+    assert sorted(p.name for p in (ROOT / "bench").glob("*.py")) == sorted(CASES)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", sorted(CASES))
+def test_bench_script_runs(script, tmp_path):
+    args, check = CASES[script]
+    out = tmp_path / "bench.json"
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / script), *args, "--json", str(out)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr
+    data = json.loads(out.read_text())
+    assert data and check(data), data
