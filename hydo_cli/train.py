@@ -31,7 +31,7 @@ from rich.console import Console
 
 from hydo_cli.config import PRESETS, Algo, TrainConfig, resolve_config
 from hydo_cli.errors import HydoError
-from hydo_cli.options import TaskOpt
+from hydo_cli.options import Goals, TaskOpt
 from sim.atomic import atomic_write_text
 
 HELP = """Train a hybrid policy (HyDo or a baseline) in the simulated bin.
@@ -76,7 +76,12 @@ def train(
     algo: Annotated[
         Algo | None, typer.Option("--algo", help="Learner (design.md §1). [default: hydo-cm]")
     ] = None,
-    goals: Annotated[str | None, typer.Option("--goals", help="planar | 6d. [default: planar]")] = None,
+    goals: Annotated[
+        Goals | None,
+        typer.Option(
+            "--goals", help="Goal mode: planar (translation) or 6d (stable pose). [default: planar]"
+        ),
+    ] = None,
     objects: Annotated[
         str | None, typer.Option("--objects", help="Object set, object name or mesh folder. [default: train]")
     ] = None,
@@ -120,7 +125,7 @@ def train(
             config,
             dict(
                 algo=algo.value if algo else None,
-                goals=goals,
+                goals=goals.value if goals else None,
                 objects=objects,
                 clutter=clutter,
                 steps=steps,
