@@ -109,6 +109,8 @@ class TrainConfig:
         ):
             if getattr(self, name) < 1:
                 raise HydoError(f"`{name}` must be at least 1. Got {getattr(self, name)}.")
+        if self.max_minutes < 0:
+            raise HydoError(f"`max_minutes` (--minutes) must be >= 0 (0: no budget). Got {self.max_minutes}.")
         if self.updates_per_step < 0:
             raise HydoError(f"`updates_per_step` must be >= 0. Got {self.updates_per_step}.")
         if not 0.0 <= self.relabel_future <= 1.0:

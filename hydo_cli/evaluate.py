@@ -13,6 +13,7 @@ behaviour-diversity tasks of ``sim.tasks`` and reports behaviour entropy.
 from __future__ import annotations
 
 import json
+import os
 import shlex
 import sys
 import time
@@ -74,6 +75,19 @@ Examples:
 """
 
 console = Console(stderr=True)
+
+
+def check_writable(flag: str, path: Path | None) -> None:
+    """Refuse, in one line, an output path that cannot be written (checked before any episode runs)."""
+    if path is None:
+        return
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise HydoError(f"{flag} {path} is a folder: give a file name")
+    if not parent.is_dir():
+        raise HydoError(f"{flag} {path}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise HydoError(f"{flag} {path} is not writable")
 
 
 def evaluate(
@@ -157,6 +171,8 @@ def evaluate(
             raise HydoError(f"--video must name an .mp4 file, got {video}")
         if len(targets) > 1 or compare:
             raise HydoError("--video records one run: give one TARGET and no --compare")
+    for flag, path in (("--json", json_out), ("--markdown", markdown_out), ("--video", video)):
+        check_writable(flag, path)  # before the episodes run, so a bad path loses no results
     task_def = None
     if task is not None:
         from sim.tasks import get_task
@@ -277,14 +293,14 @@ def evaluate(
         f"{len(runs) * episodes} episodes in {total_wall:.1f} s: {report['episodes_per_s']:.1f} episodes/s "
         f"({obs.value} observations, one process)"
     )
-    if video is not None:
-        from sim.video import write_video
-
-        write_video(frames, video, fps=2)
-        console.print(f"wrote {video} ({len(frames)} frames, {min(video_episodes, episodes)} episodes)")
     if json_out is not None:
         atomic_write_text(json_out, json.dumps(report, indent=2))
         console.print(f"wrote {json_out}")
     if markdown_out is not None:
         atomic_write_text(markdown_out, markdown_report(report))
         console.print(f"wrote {markdown_out}")
+    if video is not None:
+        from sim.video import write_video
+
+        write_video(frames, video, fps=2)
+        console.print(f"wrote {video} ({len(frames)} frames, {min(video_episodes, episodes)} episodes)")

@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from hydo_cli.errors import HydoError
 from hydo_cli.onnx_export import export_agent
 from hydo_cli.policies import load_agent
 
@@ -28,7 +29,14 @@ def export(
     target: Annotated[Path, typer.Argument(help="Run directory or checkpoint file.")],
     out: Annotated[Path, typer.Option("--out", help="Output folder for the ONNX files and manifest.")],
     seed: Annotated[int, typer.Option("--seed", help="Seed of the verification observations.")] = 0,
+    force: Annotated[
+        bool, typer.Option("--force", help="Replace an existing model folder at --out.")
+    ] = False,
 ) -> None:
+    if out.exists() and not out.is_dir():
+        raise HydoError(f"--out {out} is a file, not a model folder")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise HydoError(f"--out {out} already holds files; give another --out or --force to replace it")
     agent, cfg, command = load_agent(target)
     report = export_agent(agent, cfg, command, out, seed=seed)
     console.print(

@@ -115,10 +115,24 @@ def train(
         cfg = TrainConfig.from_dict(
             json.loads((run_dir / "config.json").read_text()), str(run_dir / "config.json")
         )
+        fixed = {
+            "--algo": algo, "--goals": goals, "--objects": objects, "--clutter": clutter, "--seed": seed,
+            "--k": denoise_steps, "--task": task, "--config": config, "--preset": preset, "--out": out,
+        }  # fmt: skip
+        given = [flag for flag, value in fixed.items() if value is not None]
+        if given:
+            raise HydoError(
+                f"--resume continues {run_dir} with its own config.json: drop {', '.join(given)} "
+                "(only --steps, --minutes and --threads may change)"
+            )
         if steps is not None:  # allow extending a finished run
             cfg = dataclasses.replace(cfg, steps=steps)
+        if max_minutes is not None:  # the budget counts the run's time over all its resumes
+            cfg = dataclasses.replace(cfg, max_minutes=max_minutes)
         if threads is not None:  # a speed setting, not a learning one: may differ on resume
             cfg = dataclasses.replace(cfg, threads=threads)
+        if cfg.max_minutes < 0:
+            raise HydoError(f"--minutes must be >= 0 (0: no budget). Got {cfg.max_minutes}.")
     else:
         cfg = resolve_config(
             preset,
@@ -142,9 +156,10 @@ def train(
     from hydo_cli.trainer import Trainer
 
     trainer = Trainer(cfg, run_dir, resume=resume is not None)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    # on --resume too: the run's record holds its current --steps / --minutes / --threads
+    atomic_write_text(run_dir / "config.json", json.dumps(dataclasses.asdict(cfg), indent=2))
     if resume is None:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(run_dir / "config.json", json.dumps(dataclasses.asdict(cfg), indent=2))
         atomic_write_text(run_dir / "command.txt", shlex.join(["hydo", *sys.argv[1:]]) + "\n")
         atomic_write_text(run_dir / "system.json", json.dumps({**system_info(), **trainer.cpu}, indent=2))
     trainer.run()

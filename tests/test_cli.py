@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -10,6 +11,9 @@ from typer.testing import CliRunner
 from hydo_cli.main import app
 
 runner = CliRunner()
+ROOT = Path(__file__).resolve().parent.parent
+OLD_RUN = str(ROOT / "tests" / "data" / "old-run-v0")
+MODEL = str(ROOT / "models" / "hydo-cm-planar")  # an existing export: never overwritten without --force
 
 
 def hydo(*args, cwd=None):
@@ -62,6 +66,11 @@ def test_eval_video(tmp_path):
         (["eval", "heuristic", "--episodes", "0"], "--episodes"),
         (["train", "--config", "missing.toml"], "missing.toml"),
         (["train", "--resume", "no/such/run"], "not a run directory"),
+        (["train", "--minutes", "-1"], "--minutes"),
+        (["train", "--resume", OLD_RUN, "--seed", "3"], "drop --seed"),
+        (["eval", "heuristic", "--json", "no/such/folder/x.json"], "does not exist"),
+        (["eval", "heuristic", "--json", "."], "is a folder"),
+        (["export", OLD_RUN, "--out", MODEL], "already holds files"),
     ],
 )
 def test_bad_input_is_one_line_and_nonzero(args, message, tmp_path):
@@ -70,6 +79,19 @@ def test_bad_input_is_one_line_and_nonzero(args, message, tmp_path):
     assert "Traceback" not in r.stderr, r.stderr
     assert message in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_resume_extends_the_minutes_budget(tmp_path):
+    """--minutes on --resume replaces the run's budget (it counts the run's time over its resumes)."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(OLD_RUN, run)
+    # the old run has 120 of 120 steps and no budget: a budget of 0.001 min ends at once, recorded
+    r = hydo("train", "--resume", str(run), "--minutes", "0.001", "--threads", "1", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["max_minutes"] == 0.001
 
 
 def test_user_mesh_folder_errors_name_the_file(tmp_path):
