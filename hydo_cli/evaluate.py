@@ -78,15 +78,18 @@ console = Console(stderr=True)
 
 
 def check_writable(flag: str, path: Path | None) -> None:
-    """Refuse, in one line, an output path that cannot be written (checked before any episode runs)."""
+    """Refuse, in one line, an output path that cannot be written (checked before any episode runs;
+    missing folders are made when the file is written)."""
     if path is None:
         return
-    parent = path.parent if str(path.parent) else Path(".")
     if path.is_dir():
         raise HydoError(f"{flag} {path} is a folder: give a file name")
-    if not parent.is_dir():
-        raise HydoError(f"{flag} {path}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+    ancestor = path.parent.absolute()
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise HydoError(f"{flag} {path}: {ancestor} is a file, not a folder")
+    if not os.access(ancestor, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
         raise HydoError(f"{flag} {path} is not writable")
 
 

@@ -68,7 +68,7 @@ def test_eval_video(tmp_path):
         (["train", "--resume", "no/such/run"], "not a run directory"),
         (["train", "--minutes", "-1"], "--minutes"),
         (["train", "--resume", OLD_RUN, "--seed", "3"], "drop --seed"),
-        (["eval", "heuristic", "--json", "no/such/folder/x.json"], "does not exist"),
+        (["eval", "heuristic", "--json", OLD_RUN + "/config.json/x.json"], "is a file, not a folder"),
         (["eval", "heuristic", "--json", "."], "is a folder"),
         (["export", OLD_RUN, "--out", MODEL], "already holds files"),
     ],
