@@ -3,9 +3,10 @@
     policy = OnnxPolicy.load("models/hydo-cm-planar")      # refuses bad folders with one line
     index, motion, info = policy.act(points, features, rng)
 
-Loading checks, before any session is created (and so before any device opens): every file
-present, manifest complete, format and observation-contract versions, sha256 of every graph, and
-that onnxruntime can parse each graph. ``act`` checks shapes and finiteness of its inputs and of the
+Loading checks, before any device opens: every file present, the manifest's fields, types and enum
+values (``robot.onnx_interface.check_manifest``), format and observation-contract versions, sha256 of
+every graph, that onnxruntime can parse each graph, and each graph's input and output names, shapes
+and dtypes against the interface and the manifest's point counts (``check_graph``). ``act`` checks shapes and finiteness of its inputs and of the
 network's outputs.
 """
 
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from robot.errors import InputError, ModelLoadError
-from robot.onnx_interface import FILES, FORMAT, MANIFEST_KEYS
+from robot.onnx_interface import FILES, FORMAT, InterfaceError, check_graph, check_manifest
 from sim.contract import FEATURE_DIM, OBS_CONTRACT_VERSION
 from sim.primitive import FeasibilityMask
 
@@ -41,16 +42,17 @@ def read_manifest(folder: Path) -> dict:
     if not mpath.exists():
         raise ModelLoadError(f"{mpath} is missing: not an exported hydo model (run `hydo export` first)")
     try:
-        manifest = json.loads(mpath.read_text())
+        manifest = json.loads(mpath.read_bytes())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ModelLoadError(
             f"{mpath} is not valid JSON ({e.__class__.__name__}): re-export the model"
         ) from None
-    if not isinstance(manifest, dict):
-        raise ModelLoadError(f"{mpath} is not a JSON object")
-    missing = [k for k in MANIFEST_KEYS if k not in manifest]
-    if missing:
-        raise ModelLoadError(f"{mpath} lacks {missing}: re-export the model")
+    except OSError as e:
+        raise ModelLoadError(f"{mpath} cannot be read ({e.strerror or e.__class__.__name__})") from None
+    try:
+        check_manifest(manifest, str(mpath))
+    except InterfaceError as e:
+        raise ModelLoadError(str(e)) from None
     if manifest["format"] != FORMAT:
         raise ModelLoadError(f"{mpath}: format {manifest['format']!r}, this hydo reads {FORMAT!r}")
     if manifest["obs_contract_version"] != OBS_CONTRACT_VERSION:
@@ -98,9 +100,16 @@ class OnnxPolicy:
                     ort.InferenceSession(str(folder / name), opts, providers=["CPUExecutionProvider"])
                 )
             except Exception as e:  # onnxruntime raises its own Fail/InvalidProtobuf types
+                first = (str(e).strip().splitlines() or [e.__class__.__name__])[0]
                 raise ModelLoadError(
-                    f"{folder / name} cannot be loaded by onnxruntime: {str(e).splitlines()[0]}"
+                    f"{folder / name} cannot be loaded by onnxruntime (not an ONNX graph?): {first[:200]}"
                 ) from None
+            try:  # the hash only says the file is the one exported; this says it is the right graph
+                check_graph(
+                    str(folder / name), name, manifest, sessions[-1].get_inputs(), sessions[-1].get_outputs()
+                )
+            except InterfaceError as e:
+                raise ModelLoadError(str(e)) from None
         return cls(manifest, *sessions)
 
     @property
