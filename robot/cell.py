@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from robot.errors import CellError
+from robot.errors import CellError, GoalError
 from sim.primitive import FLOOR_CLEARANCE_M, PUSH_STEP_M, Workspace
 
 CELL_VERSION = 1
@@ -160,7 +160,7 @@ class _Reader:
 
     def only(self, *keys: str) -> _Reader:
         """Refuse keys this section does not know (a typo must not silently fall back to a default)."""
-        unknown = sorted(set(self.data) - set(keys))
+        unknown = sorted(map(str, set(self.data) - set(keys)))  # str: YAML keys may be numbers
         if unknown:
             raise self._err(unknown[0], f"is not a known key here (known: {', '.join(keys)})")
         return self
@@ -410,8 +410,10 @@ def parse_cell(data: dict, source: str = "<dict>") -> Cell:
     )
 
 
-def load_cell(path: str | Path | None = None) -> Cell:
-    """Load and validate a cell file; ``None`` loads the shipped example (the MuJoCo twin's cell)."""
+def load_cell(path: str | Path | None = None, reach: bool = True) -> Cell:
+    """Load and validate a cell file; ``None`` loads the shipped example (the MuJoCo twin's cell).
+
+    ``reach``: also refuse a workspace the arm cannot reach (:func:`check_reach`, ~10 ms)."""
     import yaml
 
     path = Path(path) if path is not None else EXAMPLE_CELL
@@ -420,8 +422,92 @@ def load_cell(path: str | Path | None = None) -> Cell:
             f"cell file {path} does not exist: start from {EXAMPLE_CELL.name} (`cp {EXAMPLE_CELL} cell.yaml`)"
         )
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError:
+        raise CellError(f"{path}: not a text file (not UTF-8): not a cell file") from None
     except yaml.YAMLError as e:
         first = str(e).splitlines()[0] if str(e) else e.__class__.__name__
         raise CellError(f"{path}: not valid YAML ({first})") from None
-    return parse_cell(data, str(path))
+    cell = parse_cell(data, str(path))
+    if reach:
+        check_reach(cell)
+    return cell
+
+
+def reach_points(cell: Cell) -> np.ndarray:
+    """(8, 3) fingertip targets every plan may need: the workspace's x/y corners at the lowest push
+    height (floor + clearance) and at the transit height."""
+    lo, hi = cell.workspace.low, cell.workspace.high
+    zs = (cell.floor_z + FLOOR_CLEARANCE_M, cell.approach_z)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in zs])
+
+
+def check_reach(cell: Cell) -> None:
+    """Refuse, at load, a cell whose workspace the arm cannot reach with the hand pointing down.
+
+    The arm's own kinematics (``robot.arm.ArmKinematics``, the model every plan is checked with):
+    IK from the home pose to the workspace centre at transit height, then from there to each corner
+    of ``reach_points``; each must converge and keep every joint ``JOINT_MARGIN_RAD`` inside its
+    limits, as ``solve_path`` demands of every plan. Without this a bin out of reach loads and every
+    plan is then refused one by one (in the twin: episodes "end", exit 0).
+    """
+    from robot.arm import IK_TOL_POS_M, IK_TOL_ROT_RAD, ArmKinematics
+
+    kin = ArmKinematics.for_cell(cell)
+    lo, hi = np.array(cell.workspace.low), np.array(cell.workspace.high)
+    centre = np.r_[(lo[:2] + hi[:2]) / 2, cell.approach_z]
+    q_centre, _, _ = kin.ik(centre, cell.home_joints, iters=300)
+    for p in (centre, *reach_points(cell)):
+        q, ep, er = kin.ik(p, q_centre, iters=300)
+        margin, joint = kin.margin_of(q)
+        where = f"{cell.source}: the workspace point {np.round(p, 3).tolist()} m (bin.center_m {cell.bin_center.tolist()})"
+        if ep > IK_TOL_POS_M or er > IK_TOL_ROT_RAD:
+            raise CellError(
+                f"{where} is beyond the {cell.robot_type} arm's reach with the hand pointing down "
+                f"(IK error {ep * 1000:.0f} mm, {np.degrees(er):.0f} deg): move the bin closer or fix the cell"
+            )
+        if margin < kin.margin:
+            raise CellError(
+                f"{where} needs joint {joint + 1} within {margin:.3f} rad of its limit (margin {kin.margin} "
+                "rad): move the bin"
+            )
+
+
+#: A goal cloud point may stick out of the bin's inner walls by this much (depth noise at the walls).
+GOAL_WALL_TOLERANCE_M = 0.01
+
+
+def check_goal(cell: Cell, points: np.ndarray, source: str) -> None:
+    """Refuse a goal cloud (base frame) the cell cannot hold: any point outside the bin's inner walls
+    (x/y, ``GOAL_WALL_TOLERANCE_M``) or below its floor, or its centre outside the fingertip's
+    workspace box (x/y). ``source`` says where the goal came from (a file, ``--goal-offset DX,DY``)."""
+    pts = np.asarray(points, dtype=np.float64)
+    tol = GOAL_WALL_TOLERANCE_M
+    lo, hi = cell.bin_low[:2] - tol, cell.bin_high[:2] + tol
+    outside = np.any((pts[:, :2] < lo) | (pts[:, :2] > hi), axis=1) | (pts[:, 2] < cell.floor_z - tol)
+    centre = pts.mean(0)
+    if outside.any():
+        raise GoalError(
+            f"{source}: the goal puts {int(outside.sum())} of {len(pts)} object points outside the bin "
+            f"(inner walls x/y {np.round(cell.bin_low[:2], 3).tolist()}..{np.round(cell.bin_high[:2], 3).tolist()} m, "
+            f"goal centre {np.round(centre, 3).tolist()} m): refused before any motion"
+        )
+    wlo, whi = np.array(cell.workspace.low[:2]), np.array(cell.workspace.high[:2])
+    if np.any(centre[:2] < wlo) or np.any(centre[:2] > whi):
+        raise GoalError(
+            f"{source}: the goal's centre {np.round(centre, 3).tolist()} m is outside the workspace "
+            f"x/y {np.round(wlo, 3).tolist()}..{np.round(whi, 3).tolist()} m: refused before any motion"
+        )
+
+
+def check_goal_offset(cell: Cell, dx: float, dy: float, source: str) -> None:
+    """Refuse a ``--goal-offset`` no start in the workspace can satisfy (a shift larger than the
+    workspace along x or y), before anything opens; ``check_goal`` then checks each episode's goal
+    cloud once the start is seen, still before any motion."""
+    size = np.array(cell.workspace.high[:2]) - np.array(cell.workspace.low[:2])
+    for axis, d, extent in (("x", dx, size[0]), ("y", dy, size[1])):
+        if abs(d) >= extent:
+            raise GoalError(
+                f"{source}: a shift of {d:+.3f} m along {axis} leaves the workspace ({extent:.3f} m wide "
+                "along it) from any start: refused"
+            )

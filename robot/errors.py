@@ -21,6 +21,11 @@ class CellError(RobotError):
     """A cell file (``cell.yaml``) that must not be used: missing key, bad value, unsafe limits."""
 
 
+class GoalError(RobotError):
+    """A goal the cell cannot hold (outside the bin or the workspace): a wrong goal file or
+    ``--goal-offset``, refused before any motion. Not a per-step refusal: it stops the run."""
+
+
 class CameraError(RobotError):
     """A camera that is missing, has the wrong serial or link, times out, or delivers stale frames."""
 

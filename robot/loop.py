@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from robot.cameras import CameraSet, ReplayExhausted
-from robot.cell import load_cell
+from robot.cell import check_goal, check_goal_offset, load_cell
 from robot.connect import make_executor, open_cameras
 from robot.errors import (
     CameraError,
@@ -97,6 +97,10 @@ class DeployConfig:
         if self.on_refusal is not None:
             return self.on_refusal
         return "next-episode" if self.robot == "sim" and self.replay is None else "stop"
+
+
+def _offset_text(offset) -> str:
+    return ",".join(f"{v:g}" for v in offset)
 
 
 def default_session_folder(robot: str) -> Path:
@@ -160,6 +164,10 @@ class Deployment:
         if cfg.replay is not None and goal is None:
             replay_goal = Path(cfg.replay) / "goals" / "e000.npz"
             goal = Goal.load(replay_goal) if replay_goal.exists() else None
+        if goal is not None:  # a goal the cell cannot hold is refused, never pushed towards
+            check_goal(cell, goal.points, f"goal {cfg.goal or replay_goal}")
+        if cfg.goal_offset is not None:
+            check_goal_offset(cell, *cfg.goal_offset[:2], f"--goal-offset {_offset_text(cfg.goal_offset)}")
         real = cfg.robot != "sim" and cfg.replay is None
         if real and goal is None and cfg.goal_offset is None:
             raise RegistrationError(
@@ -324,6 +332,8 @@ class Deployment:
                 t_perc = time.perf_counter() - t0
                 if goal is None:  # --goal-offset: the goal is the first cloud of the episode, moved
                     goal = goal_from_offset(seg.obj_points, *cfg.goal_offset)
+                    # before any motion of the episode: a goal outside the bin stops the run
+                    check_goal(self.cell, goal.points, f"--goal-offset {_offset_text(cfg.goal_offset)}")
                     goal.save(self.log.folder / "goals" / f"e{ep:03d}.npz")
                     self.log.event("goal_from_offset", episode=ep, offset=list(cfg.goal_offset))
                 reg = register(seg.obj_points, goal.points, self.goal_mode, seed=cfg.seed + step)

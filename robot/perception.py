@@ -17,6 +17,8 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,26 +57,38 @@ class Background:
 
     @classmethod
     def load(cls, path: str | Path, cell) -> Background:
+        """Read a ``capture-background`` file and check it is of ``cell``'s cameras; anything else
+        (missing, zero bytes, truncated, not an .npz, wrong keys, types or shapes) is one
+        ``PerceptionError`` line naming the file."""
         path = Path(path)
         if not path.is_file():
             raise PerceptionError(
                 f"background {path} does not exist: run `hydo deploy capture-background --cell {cell.source}` "
                 "with the bin empty and the arm at home"
             )
-        try:
-            with np.load(path) as z:
-                meta = json.loads(str(z["meta"]))
-                depth = {
-                    k.removeprefix("depth/"): z[k].astype(np.float32)
-                    for k in z.files
-                    if k.startswith("depth/")
-                }
-        except (OSError, ValueError, KeyError) as e:
-            raise PerceptionError(
-                f"background {path} is unreadable ({e.__class__.__name__}): capture it again"
-            ) from None
-        bg = cls(depth, meta.get("calibration", ""), float(meta.get("captured_at", 0.0)))
-        bg.check(cell, str(path))
+        again = f"capture it again (`hydo deploy capture-background --cell {cell.source}`)"
+        arrays = read_npz(path, "background", PerceptionError, again)
+        meta = read_meta(arrays, path, "background", PerceptionError, again)
+
+        def bad(what: str) -> PerceptionError:
+            return PerceptionError(f"background {path}: {what}: {again}")
+
+        depth = {}
+        for k, a in arrays.items():
+            if not k.startswith("depth/"):
+                continue
+            if a.ndim != 2 or a.dtype.kind != "f":
+                raise bad(f"`{k}` must be a 2D float depth image, got {a.dtype} of shape {a.shape}")
+            depth[k.removeprefix("depth/")] = a.astype(np.float32)
+        if not depth:
+            raise bad("no `depth/<serial>` images")
+        calibration, captured_at = meta.get("calibration"), meta.get("captured_at", 0.0)
+        if not isinstance(calibration, str):
+            raise bad(f"`meta.calibration` must be a string, got {calibration!r}")
+        if isinstance(captured_at, bool) or not isinstance(captured_at, int | float):
+            raise bad(f"`meta.captured_at` must be a number, got {captured_at!r}")
+        bg = cls(depth, calibration, float(captured_at))
+        bg.check(cell, f"background {path}")
         return bg
 
     def check(self, cell, source: str = "background") -> None:
@@ -93,6 +107,41 @@ class Background:
             raise PerceptionError(
                 f"{source} was captured under another camera calibration: run `hydo deploy capture-background` again"
             )
+
+
+def read_npz(path: Path, what: str, error: type[Exception], fix: str) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` at ``path``, read now (so a truncated member fails here, not later).
+
+    The one reader of deploy's captures (background, goal): numpy reports a damaged file as
+    ``EOFError``, ``zipfile.BadZipFile``, ``zlib.error``, ``ValueError`` (pickled or random data) or
+    ``OSError``; each becomes one ``error`` line naming the file. Pickles are never loaded.
+    """
+    try:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):  # a bare .npy array, not an archive
+            raise error(f"{what} {path} is a single .npy array, not an .npz archive: {fix}")
+        with z:
+            return {k: np.asarray(z[k]) for k in z.files}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
+        reason = "empty file (0 bytes)" if path.stat().st_size == 0 else "truncated or not an .npz archive"
+        # numpy's ValueError on random bytes is about pickles, which would only mislead here
+        first = "" if isinstance(e, ValueError) else (str(e).strip().splitlines() or [""])[0][:100]
+        detail = f"{e.__class__.__name__}: {first}" if first else e.__class__.__name__
+        raise error(f"{what} {path} is unreadable, {reason} ({detail}): {fix}") from None
+
+
+def read_meta(arrays: dict, path: Path, what: str, error: type[Exception], fix: str) -> dict:
+    """The JSON object stored as the 0-d string array ``meta`` of a capture."""
+    m = arrays.get("meta")
+    if m is None or m.shape != () or m.dtype.kind != "U":
+        raise error(f"{what} {path}: no `meta` string (not a hydo capture?): {fix}")
+    try:
+        meta = json.loads(str(m))
+    except json.JSONDecodeError:
+        raise error(f"{what} {path}: `meta` is not valid JSON: {fix}") from None
+    if not isinstance(meta, dict):
+        raise error(f"{what} {path}: `meta` must be a JSON object, got {type(meta).__name__}: {fix}")
+    return meta
 
 
 def calibration_hash(cell) -> str:

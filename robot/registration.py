@@ -42,6 +42,7 @@ MAX_SOURCE_POINTS = 400
 MAX_TARGET_POINTS = 3000
 REFINE_CANDIDATES = 4
 GOAL_FORMAT = "hydo-goal/1"
+GOAL_KINDS = ("captured", "offset")  # Goal.kind: the object placed at the goal | the start cloud moved
 
 
 @dataclass
@@ -216,32 +217,49 @@ class Goal:
 
     @classmethod
     def load(cls, path: str | Path) -> Goal:
+        """Read a ``capture-goal`` file; anything but one (missing, zero bytes, truncated, not an .npz,
+        wrong keys, types, shapes or enum values) is one ``RegistrationError`` line naming the file."""
+        from robot.perception import read_meta, read_npz
+
         path = Path(path)
         if not path.is_file():
             raise RegistrationError(
                 f"goal {path} does not exist: record one with `hydo deploy capture-goal --out {path}`"
             )
-        try:
-            with np.load(path) as z:
-                points = z["points"].astype(np.float32)
-                meta = json.loads(str(z["meta"]))
-        except (OSError, ValueError, KeyError) as e:
-            raise RegistrationError(
-                f"goal {path} is unreadable ({e.__class__.__name__}): record it again"
-            ) from None
+        again = "record it again (`hydo deploy capture-goal`)"
+        arrays = read_npz(path, "goal", RegistrationError, again)
+        meta = read_meta(arrays, path, "goal", RegistrationError, again)
         if meta.get("format") != GOAL_FORMAT:
             raise RegistrationError(
                 f"goal {path}: format {meta.get('format')!r}, this hydo reads {GOAL_FORMAT!r}"
             )
-        if points.ndim != 2 or points.shape[1] != 3 or len(points) < 10 or not np.all(np.isfinite(points)):
-            raise RegistrationError(f"goal {path}: `points` must be at least 10 finite 3D points")
-        off = meta.get("offset")
-        return cls(
-            points,
-            meta.get("kind", "captured"),
-            tuple(off) if off else None,
-            float(meta.get("created_at", 0)),
-        )
+        points = arrays.get("points")
+        if (
+            points is None
+            or points.dtype.kind not in "fiu"
+            or points.ndim != 2
+            or points.shape[1] != 3
+            or len(points) < 10
+            or not np.all(np.isfinite(points))
+        ):
+            got = "none" if points is None else f"{points.dtype} of shape {points.shape}"
+            raise RegistrationError(f"goal {path}: `points` must be at least 10 finite 3D points, got {got}")
+        kind, off, created = meta.get("kind", "captured"), meta.get("offset"), meta.get("created_at", 0)
+        if kind not in GOAL_KINDS:
+            raise RegistrationError(
+                f"goal {path}: `meta.kind` must be one of {list(GOAL_KINDS)}, got {kind!r}"
+            )
+        if off is not None and not (
+            isinstance(off, list)
+            and len(off) == 3
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in off)
+        ):
+            raise RegistrationError(
+                f"goal {path}: `meta.offset` must be null or [dx, dy, yaw_deg], got {off!r}"
+            )
+        if isinstance(created, bool) or not isinstance(created, int | float):
+            raise RegistrationError(f"goal {path}: `meta.created_at` must be a number, got {created!r}")
+        return cls(points.astype(np.float32), kind, tuple(off) if off else None, float(created))
 
 
 def offset_transform(points: np.ndarray, dx: float, dy: float, yaw_deg: float = 0.0) -> np.ndarray:
