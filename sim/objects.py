@@ -498,6 +498,18 @@ def _check_stl_bytes(path: Path, err: Callable[[str], ObjectMeshError]) -> None:
     raise err("not a valid STL file (neither ASCII 'solid ... facet' nor a binary STL of consistent length)")
 
 
+def _check_obj_bytes(path: Path, err: Callable[[str], ObjectMeshError]) -> None:
+    """Refuse an .obj that is not text before trimesh sees it: trimesh guesses the encoding of binary
+    data and fails with an unrelated error (a missing ``charset_normalizer`` module)."""
+    data = path.read_bytes()
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise err("not a mesh: an .obj file is text, this one is binary data (not UTF-8)") from None
+    if b"\x00" in data:
+        raise err("not a mesh: an .obj file is text, this one contains NUL bytes")
+
+
 def _farthest_points(p: np.ndarray, k: int) -> np.ndarray:
     """Indices of ``k`` spread-out points of p (P, 3): greedy farthest-point sampling, deterministic."""
     idx = [int(np.argmax(np.linalg.norm(p - p.mean(0), axis=1)))]
@@ -535,6 +547,8 @@ def load_user_mesh(path: str | Path) -> ObjectAsset:
     try:
         if path.suffix.lower() == ".stl":
             _check_stl_bytes(path, err)
+        else:
+            _check_obj_bytes(path, err)
         import trimesh  # lazy: ~1 s import that only user meshes need
 
         # process=False: keep the file's raw vertices so NaNs are reported, not silently dropped.
