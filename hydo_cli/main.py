@@ -4,6 +4,7 @@ errors to one stderr line and a non-zero exit (set ``HYDO_DEBUG=1`` for the full
 from __future__ import annotations
 
 import os
+import signal
 import sys
 
 import typer
@@ -28,6 +29,11 @@ def main() -> None:
     from hydo_cli.errors import known_errors
 
     known = known_errors()
+
+    def on_sigterm(signum, frame):  # SIGTERM is Ctrl-C: each command cleans up, typer exits 130
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_sigterm)
     try:
         app()  # standalone: click handles usage errors (exit 2), --help and typer.Exit itself
     except known as e:  # one clear line, never a traceback, for user-facing failures

@@ -65,3 +65,84 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
             f"format version {version}, this hydo reads version {FORMAT_VERSION}; retrain or use a matching hydo",
         )
     return data["payload"]
+
+
+#: Arrays every ``replay.npz`` holds (``ReplayBuffer.save``); the pose and normal arrays are optional
+#: (older replays lack them, and ``ReplayBuffer.load`` leaves them zero).
+REPLAY_REQUIRED = (
+    "meta",
+    "rng",
+    "points",
+    "features",
+    "index",
+    "motion",
+    "reward",
+    "next_points",
+    "next_features",
+    "terminated",
+    "truncated",
+)
+
+
+def load_replay(path: str | os.PathLike, n_obj: int, n_bg: int):
+    """``ReplayBuffer.load`` behind a check of the file against the buffer's own layout.
+
+    A run's ``replay.npz`` is written with its checkpoint; on ``--resume`` a damaged one (zero bytes,
+    truncated, random bytes, missing keys, arrays whose shapes disagree with each other, with ``meta``
+    or with the run's point counts ``n_obj`` / ``n_bg``) raises :class:`CheckpointError`, one line
+    naming the file, instead of numpy's ``EOFError`` / ``BadZipFile`` / ``ValueError`` traceback or a
+    silently short buffer.
+    """
+    import ast
+    import zlib
+
+    import numpy as np
+
+    from models.replay import ReplayBuffer
+
+    path = Path(path)
+
+    def bad(reason: str) -> CheckpointError:
+        return CheckpointError(f"replay {path}: {reason}; the run cannot resume with it")
+
+    if not path.is_file():
+        raise bad("no such file")
+    try:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise bad("a single .npy array, not an .npz archive")
+        with z:  # read every member now: a truncated member fails here, with the file's name
+            arrays = {k: np.asarray(z[k]) for k in z.files}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
+        what = "empty file (0 bytes)" if path.stat().st_size == 0 else "truncated or not an .npz archive"
+        raise bad(f"{what} ({type(e).__name__})") from None
+    missing = [k for k in REPLAY_REQUIRED if k not in arrays]
+    if missing:
+        raise bad(f"lacks {missing} (not a hydo replay?)")
+    meta = arrays["meta"]
+    if meta.shape != (5,) or meta.dtype.kind not in "iu":
+        raise bad(f"`meta` must be 5 integers, got {meta.dtype} of shape {meta.shape}")
+    capacity, m_obj, m_bg, pos, full = (int(v) for v in meta)
+    if (m_obj, m_bg) != (n_obj, n_bg):
+        raise bad(f"holds {m_obj}+{m_bg} points per observation, the run's config says {n_obj}+{n_bg}")
+    n = len(arrays["points"]) if arrays["points"].ndim else -1
+    if capacity < 1 or not 0 <= pos < capacity or full not in (0, 1) or n != (capacity if full else pos):
+        raise bad(
+            f"`meta` (capacity {capacity}, position {pos}, full {full}) disagrees with {n} stored transitions"
+        )
+    layout = ReplayBuffer(1, n_obj, n_bg)  # the buffer's own per-transition shapes and dtype kinds
+    for k in ReplayBuffer._ARRAYS:
+        if k not in arrays:
+            continue
+        a, want = arrays[k], getattr(layout, k)
+        if a.shape != (n, *want.shape[1:]):
+            raise bad(f"`{k}` has shape {a.shape}, expected {(n, *want.shape[1:])}")
+        if a.dtype.kind != want.dtype.kind and not (a.dtype.kind in "iu" and want.dtype.kind in "iu"):
+            raise bad(f"`{k}` is {a.dtype}, expected {want.dtype}")
+    if n and not (0 <= arrays["index"].min() and arrays["index"].max() < n_obj):
+        raise bad(f"`index` must lie in [0, {n_obj}) (object points)")
+    try:
+        ast.literal_eval(bytes(arrays["rng"]).decode())
+        return ReplayBuffer.load(path)
+    except (ValueError, SyntaxError, TypeError, KeyError, UnicodeDecodeError, MemoryError) as e:
+        raise bad(f"unreadable contents ({type(e).__name__})") from None
