@@ -1,7 +1,8 @@
 """The Franka arm's MuJoCo model and kinematics: plan checks for every executor, and the twin's arm.
 
-The arm is dm-robotics-panda's ``panda.xml`` (Apache-2.0; the same kinematics as the FR3, whose joint
-limits differ and are set here) with a closed Franka hand built from its ``hand.obj``/``finger.obj``
+The arm is dm-robotics-panda's ``panda.xml`` (Apache-2.0, shipped in ``sim/assets/panda`` with decimated
+meshes; the same kinematics as the FR3, whose joint limits differ and are set here) with a closed
+Franka hand built from its ``hand.stl``/``finger.stl``
 meshes and the finger pad boxes of ``panda_hand.xml``, mounted ``cell.hand_yaw`` about the flange z
 axis, and a ``fingertip`` site at the cell's fingertip offset. :class:`ArmKinematics` solves
 damped-least-squares IK for the fingertip pointing straight down (fingers spanning the base y axis,
@@ -13,14 +14,13 @@ limits). Real executors run the same check before they send anything.
 from __future__ import annotations
 
 import functools
-import importlib.metadata
 from dataclasses import dataclass
-from pathlib import Path
 
 import mujoco
 import numpy as np
 
 from robot.errors import UnreachableError
+from sim.scene import PANDA_ASSETS
 
 ARM_PREFIX = "arm/"
 JOINTS = tuple(f"{ARM_PREFIX}panda_joint{i}" for i in range(1, 8))
@@ -50,20 +50,6 @@ NULLSPACE_GAIN = 0.05  # per IK iteration, towards the rest posture (the home po
 MAX_JOINT_JUMP_RAD = 0.35  # a larger change between neighbouring path samples is an IK branch switch
 
 
-@functools.cache
-def panda_assets() -> Path:
-    """Folder of dm-robotics-panda's ``panda.xml`` and meshes; raises ``UnreachableError`` if absent."""
-    try:
-        root = importlib.metadata.distribution("dm-robotics-panda").locate_file(
-            "dm_robotics/panda/assets/panda"
-        )
-    except importlib.metadata.PackageNotFoundError:
-        raise UnreachableError(
-            "the arm model needs dm-robotics-panda: `pip install --no-deps dm-robotics-panda==0.4.8`"
-        ) from None
-    return Path(root)
-
-
 def rot_z(angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -83,8 +69,7 @@ def add_arm(spec: mujoco.MjSpec, robot_type: str, fingertip_offset, hand_yaw: fl
     Adds torque actuators ``arm/motor{1..7}`` (N·m, the arm's torque limits). Arm geoms collide with
     the scene but not with each other.
     """
-    root = panda_assets()
-    arm = mujoco.MjSpec.from_file(str(root / "panda.xml"))
+    arm = mujoco.MjSpec.from_file(str(PANDA_ASSETS / "panda.xml"))
     if not meshes:  # kinematics only: no geoms, no mesh assets to compile (saves ~2 s)
         for g in list(arm.geoms):
             arm.delete(g)
@@ -111,8 +96,8 @@ def add_arm(spec: mujoco.MjSpec, robot_type: str, fingertip_offset, hand_yaw: fl
     )
     geom = dict(contype=ARM_CONTYPE, conaffinity=ARM_CONAFFINITY, group=0, rgba=[0.92, 0.92, 0.92, 1])
     if meshes:
-        spec.add_mesh(name="hand_mesh", file=str(root / "hand.obj"))
-        spec.add_mesh(name="finger_mesh", file=str(root / "finger.obj"))
+        spec.add_mesh(name="hand_mesh", file=str(PANDA_ASSETS / "hand.stl"))
+        spec.add_mesh(name="finger_mesh", file=str(PANDA_ASSETS / "finger.stl"))
         hand.add_geom(name="hand_geom", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="hand_mesh", mass=0, **geom)
         for side, quat in (("left", [0, 0, 0, 1]), ("right", [1, 0, 0, 0])):
             hand.add_geom(

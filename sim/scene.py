@@ -3,15 +3,13 @@ execution in it.
 
 ``assets/scene.xml`` includes ``bin.xml`` and ``hand.xml``; this module adds the object as a free body
 of convex mesh parts, optional clutter bodies, a translucent goal ghost (a mocap body, group 4,
-never collides) and, when ``dm-robotics-panda`` is installed, the Panda hand meshes as visuals.
+never collides) and the Panda hand meshes as visuals.
 
 Frames and units: world frame, metres, quaternions wxyz. The bin floor's top is z = 0.
 """
 
 from __future__ import annotations
 
-import functools
-import importlib.metadata
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +22,10 @@ from sim.objects import ObjectAsset
 from sim.primitive import BIN_INNER_SIZE_M, PUSH_SEGMENTS
 
 ASSETS = Path(__file__).parent / "assets"
+#: The Panda arm and hand (``panda.xml``, ``hand.stl``, ``finger.stl``...), shipped with the package:
+#: dm-robotics-panda 0.4.8's model with decimated meshes (``assets/panda/NOTICE``). The scene's hand
+#: visuals and ``robot.arm``'s arm (the deploy twin and every executor's plan check) load it from here.
+PANDA_ASSETS = ASSETS / "panda"
 # What get_state/set_state carry: MuJoCo's full integration state. qpos/qvel/ctrl alone leave out the
 # solver's warm start, and a push replayed from such a state ended up to 6.6 cm elsewhere.
 _FULL_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
@@ -49,26 +51,12 @@ class PrimitiveResult:
     physics_steps: int = 0
 
 
-@functools.cache
-def _panda_hand_meshes() -> tuple[str, str] | None:
-    """Paths of dm-robotics-panda's hand.obj and finger.obj, or None when it is not installed."""
-    try:
-        root = importlib.metadata.distribution("dm-robotics-panda").locate_file(
-            "dm_robotics/panda/assets/panda"
-        )
-    except importlib.metadata.PackageNotFoundError:
-        return None
-    hand, finger = Path(root) / "hand.obj", Path(root) / "finger.obj"
-    return (str(hand), str(finger)) if hand.exists() and finger.exists() else None
-
-
 def _add_hand_visuals(spec: mujoco.MjSpec) -> None:
-    meshes = _panda_hand_meshes()
-    if meshes is None or os.environ.get("HYDO_NO_HAND_MESH"):
+    if os.environ.get("HYDO_NO_HAND_MESH"):
         return
     hand = spec.body("hand")
-    spec.add_mesh(name="panda_hand_mesh", file=meshes[0])
-    spec.add_mesh(name="panda_finger_mesh", file=meshes[1])
+    spec.add_mesh(name="panda_hand_mesh", file=str(PANDA_ASSETS / "hand.stl"))
+    spec.add_mesh(name="panda_finger_mesh", file=str(PANDA_ASSETS / "finger.stl"))
     rgba = [0.95, 0.95, 0.95, 1.0]
     # Wrist frame: 0.1124 m above the fingertip, rotated 180 deg about x so the fingers point down.
     flip = [0.0, 1.0, 0.0, 0.0]
