@@ -9,9 +9,12 @@ only then renamed into place. A failed verification leaves no model folder behin
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -22,20 +25,56 @@ TOLERANCE = 1e-4  # max abs difference torch vs onnxruntime on motions and Q
 OPSET = 18
 
 
+#: Known exporter messages that say nothing about this export; each was checked (torch 2.x dynamo
+#: exporter) and is silenced only around ``torch.onnx.export``. Anything else still prints.
+KNOWN_EXPORT_WARNINGS = (
+    # hydo's graphs hold no train/eval-dependent layer (no dropout, no batch norm, no ``.training``
+    # branch in models/), and ``verify`` compares onnxruntime with torch after the export anyway
+    (UserWarning, r"Exporting a model while it is in training mode"),
+    # the dynamic axes share one name on purpose (every input's batch is the same batch)
+    (UserWarning, r"# The axis name: \w+ will not be used, since it shares the same shape constraints"),
+    # a deprecation inside torch's own pytree code, not in hydo
+    (FutureWarning, r"`isinstance\(treespec, LeafSpec\)` is deprecated"),
+)
+#: torch's exporter logs one line per torchvision operator it cannot register; hydo uses none
+_TORCHVISION_LOGGER = "torch.onnx._internal.exporter._registration"
+
+
+class _DropTorchvisionNotice(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "torchvision is not installed" not in record.getMessage()
+
+
+@contextlib.contextmanager
+def _quiet_exporter():
+    """Silence exactly ``KNOWN_EXPORT_WARNINGS`` and the torchvision notices while exporting."""
+    logger = logging.getLogger(_TORCHVISION_LOGGER)
+    drop = _DropTorchvisionNotice()
+    logger.addFilter(drop)
+    try:
+        with warnings.catch_warnings():
+            for category, message in KNOWN_EXPORT_WARNINGS:
+                warnings.filterwarnings("ignore", message=message, category=category)
+            yield
+    finally:
+        logger.removeFilter(drop)
+
+
 def _export_one(torch, module, args, names_in, names_out, path, dynamic):
     try:
-        torch.onnx.export(
-            module,
-            args,
-            str(path),
-            input_names=list(names_in),
-            output_names=list(names_out),
-            dynamic_shapes=dynamic,
-            opset_version=OPSET,
-            dynamo=True,
-            external_data=False,
-            verbose=False,
-        )
+        with _quiet_exporter():
+            torch.onnx.export(
+                module,
+                args,
+                str(path),
+                input_names=list(names_in),
+                output_names=list(names_out),
+                dynamic_shapes=dynamic,
+                opset_version=OPSET,
+                dynamo=True,
+                external_data=False,
+                verbose=False,
+            )
     except Exception as e:
         raise HydoError(f"torch.onnx.export failed for {path.name}: {str(e).splitlines()[0]}") from None
 
