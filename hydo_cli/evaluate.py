@@ -13,7 +13,6 @@ behaviour-diversity tasks of ``sim.tasks`` and reports behaviour entropy.
 from __future__ import annotations
 
 import json
-import os
 import shlex
 import sys
 import time
@@ -36,6 +35,7 @@ from hydo_cli.options import (
     SeedOpt,
     TaskOpt,
 )
+from hydo_cli.paths import check_writable
 from hydo_cli.report import COMPARE_SPLITS, aggregate, run_summary
 from hydo_cli.tables import markdown_report, print_report
 from sim.atomic import atomic_write_text
@@ -77,22 +77,6 @@ Examples:
 console = Console(stderr=True)
 
 
-def check_writable(flag: str, path: Path | None) -> None:
-    """Refuse, in one line, an output path that cannot be written (checked before any episode runs;
-    missing folders are made when the file is written)."""
-    if path is None:
-        return
-    if path.is_dir():
-        raise HydoError(f"{flag} {path} is a folder: give a file name")
-    ancestor = path.parent.absolute()
-    while not ancestor.exists():
-        ancestor = ancestor.parent
-    if not ancestor.is_dir():
-        raise HydoError(f"{flag} {path}: {ancestor} is a file, not a folder")
-    if not os.access(ancestor, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
-        raise HydoError(f"{flag} {path} is not writable")
-
-
 def evaluate(
     targets: Annotated[
         list[str],
@@ -122,6 +106,14 @@ def evaluate(
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the results as JSON here.")] = None,
     markdown_out: Annotated[
         Path | None, typer.Option("--markdown", help="Write the tables as Markdown here.")
+    ] = None,
+    plot_out: Annotated[
+        Path | None,
+        typer.Option(
+            "--plot",
+            help="With --compare: draw Table I as grouped bars (IQM, 95% CI whiskers) into this image "
+            "(.png; needs the plot extra).",
+        ),
     ] = None,
     video: Annotated[Path | None, typer.Option("--video", help="Render the episodes to this .mp4.")] = None,
     video_episodes: Annotated[int, typer.Option(help="Episodes to render into --video.")] = 3,
@@ -174,7 +166,19 @@ def evaluate(
             raise HydoError(f"--video must name an .mp4 file, got {video}")
         if len(targets) > 1 or compare:
             raise HydoError("--video records one run: give one TARGET and no --compare")
-    for flag, path in (("--json", json_out), ("--markdown", markdown_out), ("--video", video)):
+    if plot_out is not None:
+        from hydo_cli.figures import check_image_path, require_matplotlib
+
+        if not compare:
+            raise HydoError("--plot draws Table I: add --compare")
+        check_image_path("--plot", plot_out)
+        require_matplotlib()  # a missing extra fails now, not after the episodes
+    for flag, path in (
+        ("--json", json_out),
+        ("--markdown", markdown_out),
+        ("--plot", plot_out),
+        ("--video", video),
+    ):
         check_writable(flag, path)  # before the episodes run, so a bad path loses no results
     task_def = None
     if task is not None:
@@ -302,6 +306,11 @@ def evaluate(
     if markdown_out is not None:
         atomic_write_text(markdown_out, markdown_report(report))
         console.print(f"wrote {markdown_out}")
+    if plot_out is not None:
+        from hydo_cli.figures import save_figure, table1_figure
+
+        save_figure(table1_figure(report), plot_out)
+        console.print(f"wrote {plot_out}")
     if video is not None:
         from sim.video import write_video
 

@@ -9,7 +9,7 @@ import sys
 
 import typer
 
-from hydo_cli import deploy, evaluate, export, train
+from hydo_cli import deploy, evaluate, export, plot, train
 
 app = typer.Typer(
     name="hydo",
@@ -23,6 +23,7 @@ app.command("train", help=train.HELP)(train.train)
 app.command("eval", help=evaluate.HELP)(evaluate.evaluate)
 app.command("export", help=export.HELP)(export.export)
 app.add_typer(deploy.app, name="deploy")
+app.command("plot", help=plot.HELP)(plot.plot)
 
 
 def main() -> None:
