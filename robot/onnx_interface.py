@@ -161,6 +161,6 @@ def check_graph(path: str, name: str, manifest: dict, inputs, outputs) -> None:
             for axis, (have, need) in enumerate(zip(gshape, shape, strict=True)):
                 if need is not None and isinstance(have, int) and have != need:
                     raise InterfaceError(
-                        f"{path}: `{tensor}` axis {axis} is {have}, the manifest's point counts / sizes "
-                        f"give {need} (shape {gshape}, expected {list(shape)})"
+                        f"{path}: `{tensor}` axis {axis} is {have}, the sizes in manifest.json (n_obj, n_bg, "
+                        f"feature_dim, noise_per_point) give {need} (shape {gshape}, expected {list(shape)})"
                     )
