@@ -49,17 +49,21 @@ def read_manifest(folder: Path) -> dict:
         ) from None
     except OSError as e:
         raise ModelLoadError(f"{mpath} cannot be read ({e.strerror or e.__class__.__name__})") from None
-    try:
-        check_manifest(manifest, str(mpath))
-    except InterfaceError as e:
-        raise ModelLoadError(str(e)) from None
-    if manifest["format"] != FORMAT:
+    # versions first: a model of another hydo is named as such, not as a list of odd fields
+    if isinstance(manifest, dict) and manifest.get("format", FORMAT) != FORMAT:
         raise ModelLoadError(f"{mpath}: format {manifest['format']!r}, this hydo reads {FORMAT!r}")
-    if manifest["obs_contract_version"] != OBS_CONTRACT_VERSION:
+    if (
+        isinstance(manifest, dict)
+        and manifest.get("obs_contract_version", OBS_CONTRACT_VERSION) != OBS_CONTRACT_VERSION
+    ):
         raise ModelLoadError(
             f"{mpath}: observation contract v{manifest['obs_contract_version']}, this hydo builds "
             f"v{OBS_CONTRACT_VERSION} observations: re-export with this version"
         )
+    try:
+        check_manifest(manifest, str(mpath))
+    except InterfaceError as e:
+        raise ModelLoadError(str(e)) from None
     for name in FILES:
         f = folder / name
         if not f.exists():
