@@ -99,3 +99,64 @@ def test_user_mesh_folder_errors_name_the_file(tmp_path):
     (tmp_path / "meshes" / "broken.obj").write_text("this is not a mesh\n")
     r = hydo("eval", "heuristic", "--objects", str(tmp_path / "meshes"), "--episodes", "1")
     assert r.returncode != 0 and "broken.obj" in r.stderr and "Traceback" not in r.stderr
+
+
+# --- exit codes and a quiet export (issue 17) ---------------------------------------------------------
+
+
+def test_sigterm_exits_130_like_ctrl_c(tmp_path):
+    """SIGTERM during a command is Ctrl-C: cleanup runs and the exit code is 130 (not -15, not 1)."""
+    import signal
+    import time
+
+    # known_errors() first: main's imports are then cached, so its handler is in place right after "ready"
+    code = (
+        "from hydo_cli.errors import known_errors; from hydo_cli.main import main; known_errors(); "
+        "print('ready', flush=True); main()"
+    )
+    p = subprocess.Popen(
+        [sys.executable, "-c", code, "eval", "heuristic", "--objects", "cube", "--episodes", "500"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert p.stdout.readline().strip() == "ready"
+    time.sleep(2.0)  # main has installed its handler; the episodes are running
+    assert p.poll() is None, p.communicate()
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    assert "Traceback" not in err, err
+
+
+def test_deploy_with_a_bin_out_of_reach_exits_1_before_anything_opens(tmp_path):
+    import yaml
+
+    cell = yaml.safe_load((ROOT / "robot" / "cell.example.yaml").read_text())
+    for key in (("bin", "center_m"), ("workspace", "low_m"), ("workspace", "high_m")):
+        cell[key[0]][key[1]][0] += 0.6  # 1.1 m in front of the base: beyond a Panda's reach
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(cell))
+    r = hydo("deploy", "--robot", "sim", "--model", MODEL, "--cell", "cell.yaml", "--log", "s", cwd=tmp_path)
+    assert r.returncode == 1, r.stderr
+    assert "beyond the panda arm's reach" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "s").exists()
+
+
+def test_export_prints_no_exporter_warnings(tmp_path):
+    """A normal export prints none of torch's known exporter warnings (they are filtered only around
+    the export call: hydo_cli.onnx_export.KNOWN_EXPORT_WARNINGS)."""
+    code = (
+        "from hydo_cli.config import TrainConfig, agent_config\n"
+        "from hydo_cli.onnx_export import export_agent\n"
+        "from models.algos import HybridAgent\n"
+        "tiny = dict(feature_dim=16, encoder_hidden=16, encoder_global=16, actor_hidden=16, critic_hidden=16)\n"
+        "cfg = TrainConfig(algo='hydo-cm', objects='cube', goals='planar', n_obj=32, n_bg=16, agent=tiny)\n"
+        f"export_agent(HybridAgent(agent_config(cfg)), cfg, 'test', {str(tmp_path / 'm')!r}, n_checks=8)\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-W", "default", "-c", code], capture_output=True, text=True, cwd=ROOT
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.strip() == "", r.stderr
+    assert (tmp_path / "m" / "manifest.json").exists()
