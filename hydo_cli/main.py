@@ -9,7 +9,7 @@ import sys
 
 import typer
 
-from hydo_cli import deploy, evaluate, export, plot, train
+from hydo_cli import deploy, evaluate, export, plot, sweep, train
 
 app = typer.Typer(
     name="hydo",
@@ -24,6 +24,7 @@ app.command("eval", help=evaluate.HELP)(evaluate.evaluate)
 app.command("export", help=export.HELP)(export.export)
 app.add_typer(deploy.app, name="deploy")
 app.command("plot", help=plot.HELP)(plot.plot)
+app.command("sweep", help=sweep.HELP)(sweep.sweep)
 
 
 def main() -> None:
