@@ -266,6 +266,42 @@ def _tune_trainable(config: dict, spec: SweepSpec) -> None:
         raise RuntimeError(f"hydo train exited with {box.get('rc')}: see {trial.log}")
 
 
+def _mark_trials(spec: SweepSpec, results: dict[str, int]):
+    """A Tune callback (in the driver) that keeps sweep.json and the console in step with the trials."""
+    from ray import tune
+
+    class MarkTrials(tune.Callback):
+        # Tune pickles its callbacks with the experiment state: hold only picklable things (no console)
+        def __init__(self, spec, results):
+            self.spec, self.results = spec, results
+
+        def trial(self, trial) -> Trial:
+            return next(t for t in self.spec.trials if t.name == trial.config["trial"])
+
+        def on_trial_start(self, iteration, trials, trial, **info):
+            self.spec.mark(self.trial(trial), "running")
+
+        def on_trial_recover(self, iteration, trials, trial, **info):  # failed; Tune retries it
+            _say(f"{trial.config['trial']}: failed, retrying (it resumes from its checkpoint)")
+
+        def on_trial_result(self, iteration, trials, trial, result, **info):
+            _say(f"{trial.config['trial']}: {result['env_steps']}/{result['planned_steps']} env steps")
+
+        def on_trial_complete(self, iteration, trials, trial, **info):
+            self.spec.mark(self.trial(trial), "done", returncode=0)
+            self.results[trial.config["trial"]] = 0
+
+        def on_trial_error(self, iteration, trials, trial, **info):
+            self.spec.mark(self.trial(trial), "failed", returncode=1)
+            self.results[trial.config["trial"]] = 1
+
+    return MarkTrials(spec, results)
+
+
+def _say(text: str) -> None:
+    console.print(text)
+
+
 def run_ray(spec: SweepSpec, address: str, max_failures: int) -> dict[str, int]:
     """Every pending trial as one Tune trial reserving ``spec.cpus`` CPUs on the cluster at ``address``."""
     try:
@@ -281,26 +317,6 @@ def run_ray(spec: SweepSpec, address: str, max_failures: int) -> dict[str, int]:
             raise HydoError(f"--ray {address}: no Ray cluster there ({e})") from None
     pending = spec.pending()
     results: dict[str, int] = {}
-
-    by_name = {t.name: t for t in pending}
-
-    class MarkTrials(tune.Callback):  # sweep.json and the console follow the trials as Tune runs them
-        def on_trial_start(self, iteration, trials, trial, **info):
-            spec.mark(by_name[trial.config["trial"]], "running")
-
-        def on_trial_result(self, iteration, trials, trial, result, **info):
-            console.print(
-                f"{trial.config['trial']}: {result['env_steps']}/{result['planned_steps']} env steps"
-            )
-
-        def on_trial_complete(self, iteration, trials, trial, **info):
-            spec.mark(by_name[trial.config["trial"]], "done", returncode=0)
-            results[trial.config["trial"]] = 0
-
-        def on_trial_error(self, iteration, trials, trial, **info):
-            spec.mark(by_name[trial.config["trial"]], "failed", returncode=1)
-            results[trial.config["trial"]] = 1
-
     tuner = tune.Tuner(
         tune.with_resources(tune.with_parameters(_tune_trainable, spec=spec), {"cpu": spec.cpus}),
         param_space={"trial": tune.grid_search([t.name for t in pending])},
@@ -309,7 +325,7 @@ def run_ray(spec: SweepSpec, address: str, max_failures: int) -> dict[str, int]:
             name=f"sweep-{time.strftime('%Y%m%d-%H%M%S')}",
             storage_path=str((spec.out / "ray").absolute()),
             failure_config=tune.FailureConfig(max_failures=max_failures),
-            callbacks=[MarkTrials()],
+            callbacks=[_mark_trials(spec, results)],
             verbose=0,
         ),
     )
