@@ -9,7 +9,7 @@ import sys
 
 import typer
 
-from hydo_cli import deploy, evaluate, export, plot, sweep, train
+from hydo_cli import deploy, evaluate, export, plot, review, sweep, train
 
 app = typer.Typer(
     name="hydo",
@@ -22,6 +22,9 @@ app = typer.Typer(
 app.command("train", help=train.HELP)(train.train)
 app.command("eval", help=evaluate.HELP)(evaluate.evaluate)
 app.command("export", help=export.HELP)(export.export)
+# `hydo deploy review SESSION`: beside capture-background / capture-goal (the deploy callback returns
+# at once when a subcommand is named, so `hydo deploy --robot sim ...` is unchanged)
+deploy.app.command("review", help=review.HELP)(review.review)
 app.add_typer(deploy.app, name="deploy")
 app.command("plot", help=plot.HELP)(plot.plot)
 app.command("sweep", help=sweep.HELP)(sweep.sweep)

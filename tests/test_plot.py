@@ -141,3 +141,60 @@ def test_eval_plot_path_is_checked_before_any_episode(tmp_path, args, message):
     r = hydo("eval", "random", "--episodes", "500", *[a.format(tmp=tmp_path) for a in args])
     assert r.returncode != 0 and message in r.stderr, r.stderr
     assert "Traceback" not in r.stderr
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    """A real deploy session: one episode of the shipped model on the MuJoCo twin."""
+    from tests.test_cli import MODEL
+
+    folder = tmp_path_factory.mktemp("deploy") / "session"
+    r = hydo(
+        "deploy", "--robot", "sim", "--model", MODEL, "--episodes", "1", "--seed", "0", "--log", str(folder)
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    return folder
+
+
+def test_deploy_review_draws_a_row_per_step(session, tmp_path):
+    steps = sorted((session / "steps").glob("e*-s*.npz"))
+    png = tmp_path / "session.png"
+    r = hydo("deploy", "review", str(session), "--out", str(png))
+    assert r.returncode == 0, r.stderr
+    img = assert_picture(png, min_w=900, min_h=250 * len(steps))
+    assert f"{len(steps)} steps" in r.stderr
+    # the contact star (lime) and the mask overlay (red) are drawn
+    rgb = (img[..., :3] * 255).astype(int) if img.dtype != np.uint8 else img[..., :3].astype(int)
+    assert ((rgb[..., 1] > 200) & (rgb[..., 0] < 80) & (rgb[..., 2] < 80)).any(), "no contact marker"
+    assert ((rgb[..., 0] > 180) & (rgb[..., 1] < 90) & (rgb[..., 2] < 90)).any(), "no mask overlay"
+
+
+def test_deploy_review_as_video(session, tmp_path):
+    import cv2
+
+    mp4 = tmp_path / "session.mp4"
+    r = hydo("deploy", "review", str(session), "--out", str(mp4), "--max-steps", "2")
+    assert r.returncode == 0, r.stderr
+    cap = cv2.VideoCapture(str(mp4))
+    frames = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(frame)
+    assert len(frames) == 2 and frames[0].shape[1] >= 900 and frames[0].std() > 0
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["{tmp}"], "is not a deploy session folder"),
+        (["{tmp}/none"], "is not a folder"),
+        (["{session}", "--episode", "7"], "has no recorded steps of episode 7"),
+        (["{session}", "--out", "{tmp}/s.gif"], "give a .png"),
+    ],
+)
+def test_deploy_review_bad_input_is_one_line(session, tmp_path, args, message):
+    r = hydo("deploy", "review", *[a.format(tmp=tmp_path, session=session) for a in args])
+    assert r.returncode != 0 and message in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
