@@ -131,8 +131,9 @@ def _atomic_savez(path: Path, **arrays) -> None:
 _SHIPPED: dict[str, np.ndarray] | None = None
 
 
-def stable_poses(asset: ObjectAsset) -> np.ndarray:
-    """The ``(n, 5)`` stable poses of ``asset``: shipped, cached, or computed now (with progress)."""
+def stable_poses(asset: ObjectAsset, progress=None) -> np.ndarray:
+    """The ``(n, 5)`` stable poses of ``asset``: shipped, cached, or computed now (with progress: a bar
+    of its own, or ``progress(i, n)`` per pose from a caller that shows its own)."""
     global _SHIPPED
     key = f"{asset.name}-{geometry_hash(asset)}"
     if _SHIPPED is None:
@@ -142,11 +143,14 @@ def stable_poses(asset: ObjectAsset) -> np.ndarray:
     path = _cache_dir() / f"{key}.npz"
     if path.exists():
         return np.load(path)["poses"]
-    from rich.progress import Progress
+    if progress is not None:
+        poses = compute_stable_poses(asset, progress=progress)
+    else:
+        from rich.progress import Progress
 
-    with Progress(transient=True) as bar:
-        task = bar.add_task(f"stable poses of {asset.name}", total=N_STABLE_POSES)
-        poses = compute_stable_poses(asset, progress=lambda i, n: bar.update(task, completed=i))
+        with Progress(transient=True) as bar:
+            task = bar.add_task(f"stable poses of {asset.name}", total=N_STABLE_POSES)
+            poses = compute_stable_poses(asset, progress=lambda i, n: bar.update(task, completed=i))
     _atomic_savez(path, poses=poses)
     return poses
 
@@ -213,15 +217,45 @@ def sample_episode(assets, goal_mode: str, rng: np.random.Generator, poses: dict
     return asset, start, goal
 
 
-def main() -> None:
-    """Regenerate the shipped stable poses of every built-in object (deterministic; ~1-2 min)."""
-    from rich.progress import track
+def main(argv: list[str] | None = None) -> None:
+    """``python -m sim.goals``: regenerate the shipped stable poses of every built-in object
+    (deterministic; ~1-2 min); ``python -m sim.goals MESH_OR_FOLDER ...``: compute and cache those of
+    user meshes ahead of training (what ``--objects FOLDER`` would do on first use), with a bar per
+    object and one over all of them."""
+    import argparse
 
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from sim.objects import ObjectMeshError, load_objects
+
+    ap = argparse.ArgumentParser(prog="python -m sim.goals", description=main.__doc__.splitlines()[0])
+    ap.add_argument("meshes", nargs="*", help="user .obj/.stl files or folders of them (default: built-ins)")
+    args = ap.parse_args(argv)
+    try:
+        assets = [a for spec in args.meshes for a in load_objects(spec)] if args.meshes else builtin_objects()
+    except (ValueError, ObjectMeshError) as e:  # a bad path or mesh: one line, no traceback
+        ap.exit(1, f"python -m sim.goals: error: {e}\n")
+    columns = (TextColumn("{task.description:<32}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     arrays = {}
-    for asset in track(builtin_objects(), description="stable poses"):
-        arrays[f"{asset.name}-{geometry_hash(asset)}"] = compute_stable_poses(asset)
-    _atomic_savez(SHIPPED_FILE, **arrays)
-    print(f"wrote {SHIPPED_FILE} ({len(arrays)} objects)")
+    with Progress(*columns) as bar:
+        overall = bar.add_task("objects", total=len(assets))
+        for asset in assets:
+            task = bar.add_task(f"  {asset.name}", total=N_STABLE_POSES)
+
+            def tick(i, n, task=task):
+                bar.update(task, completed=i, total=n)
+
+            if args.meshes:  # cached under $HYDO_CACHE, where training looks them up
+                stable_poses(asset, progress=tick)
+            else:
+                arrays[f"{asset.name}-{geometry_hash(asset)}"] = compute_stable_poses(asset, progress=tick)
+            bar.update(task, completed=N_STABLE_POSES)
+            bar.advance(overall)
+    if args.meshes:
+        print(f"stable poses of {len(assets)} objects cached in {_cache_dir()}")
+    else:
+        _atomic_savez(SHIPPED_FILE, **arrays)
+        print(f"wrote {SHIPPED_FILE} ({len(arrays)} objects)")
 
 
 if __name__ == "__main__":
