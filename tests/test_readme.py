@@ -19,7 +19,7 @@ from hydo_cli.main import app
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
 #: Options whose value is a file the command writes, not one that must already exist.
-OUTPUT_OPTIONS = {"--out", "--json", "--markdown", "--video", "--log"}
+OUTPUT_OPTIONS = {"--out", "--json", "--markdown", "--video", "--log", "--plot"}
 #: Top-level folders of repository files a command may read.
 REPO_DIRS = ("configs/", "robot/", "models/", "bench/", "sim/", "docs/")
 
@@ -86,7 +86,7 @@ def test_readme_states_the_torch_pin_of_pyproject():
 
 def test_readme_has_hydo_commands_for_every_subcommand():
     used = {path[0] for path, _ in HYDO if path}
-    assert used == {"train", "eval", "export", "deploy"}, used
+    assert used == {"train", "eval", "export", "deploy", "plot", "sweep"}, used
     assert all(path for path, _ in HYDO), [p for p in HYDO if not p[0]]
 
 
