@@ -313,8 +313,8 @@ def run_ray(spec: SweepSpec, address: str, max_failures: int) -> dict[str, int]:
     if not ray.is_initialized():
         try:
             ray.init(address=address, log_to_driver=False)
-        except ConnectionError as e:
-            raise HydoError(f"--ray {address}: no Ray cluster there ({e})") from None
+        except Exception as e:  # Ray raises ConnectionError, RuntimeError or its own: all mean "not there"
+            raise HydoError(f"--ray {address}: cannot connect to a Ray cluster there ({e})") from None
     pending = spec.pending()
     results: dict[str, int] = {}
     tuner = tune.Tuner(
