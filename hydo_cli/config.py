@@ -7,6 +7,7 @@ run's checkpoint (``hydo_cli.policies``); saved as a run's ``config.json``.
 from __future__ import annotations
 
 import dataclasses
+import json
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +22,8 @@ CHECKPOINT_FORMAT = 1
 #: TrainConfig keys that measurements showed do not help (docs/experiments.md), with the value that
 #: made them inert: a run that recorded them at that value loads as before.
 REMOVED_KEYS: dict[str, Any] = {"augment": "none"}
+#: Values of keys a config.json written before the key existed had in effect.
+LEGACY_VALUES: dict[str, Any] = {"workers": 1}
 
 __all__ = ["Algo", "TrainConfig", "PRESETS", "resolve_config", "agent_config"]
 
@@ -72,8 +75,12 @@ class TrainConfig:
     relabel_future: float = 0.0
     """Hindsight relabelling: the fraction of each sampled batch whose goal becomes the object pose
     after this or a later primitive of its episode (HER's "future" strategy, models.replay)."""
-    threads: int = 2
-    """torch intra-op threads: 2 on an idle 2-core machine, 1 when two runs share it."""
+    workers: int = 2
+    """Data-parallel worker processes, one per core (hydo_cli.trainer): each steps n_envs / workers
+    envs and computes the gradient of batch_size / workers transitions. 1: the serial loop."""
+    threads: int = 1
+    """torch intra-op threads per worker (a second thread in one process gains ~1.26×, a second
+    worker ~1.9×: bench/trainer.py)."""
     agent: dict = dataclasses.field(default_factory=dict)
     """Extra learner options passed to ``models.AgentConfig`` (e.g. {"actor_hidden": 128}; see AgentConfig)."""
 
@@ -88,7 +95,25 @@ class TrainConfig:
         unknown = sorted(set(d) - known - set(REMOVED_KEYS))
         if unknown:
             raise HydoError(f"{source}: unknown config keys {unknown}")
-        return cls(**{k: v for k, v in d.items() if k in known})
+        return cls(**{**LEGACY_VALUES, **{k: v for k, v in d.items() if k in known}})
+
+    @classmethod
+    def load(cls, path: Path) -> TrainConfig:
+        """A run's ``config.json`` → TrainConfig, or one line naming the file and what is wrong."""
+        try:
+            d = json.loads(Path(path).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise HydoError(f"{path}: not a readable JSON run configuration ({type(e).__name__})") from None
+        if not isinstance(d, dict):
+            raise HydoError(f"{path}: not a run configuration (a JSON object), got {type(d).__name__}")
+        for f in dataclasses.fields(cls):
+            if f.name in d and not _has_type(d[f.name], f.type):
+                raise HydoError(f"{path}: `{f.name}` must be {f.type}, got {d[f.name]!r}")
+        try:
+            return cls.from_dict(d, str(path))
+        except HydoError as e:
+            msg = str(e)
+            raise HydoError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
 
     def __post_init__(self):
         if self.algo not in ALGOS:
@@ -106,9 +131,16 @@ class TrainConfig:
             "buffer_size",
             "denoise_steps",
             "threads",
+            "workers",
         ):
             if getattr(self, name) < 1:
                 raise HydoError(f"`{name}` must be at least 1. Got {getattr(self, name)}.")
+        for name in ("n_envs", "batch_size", "buffer_size"):
+            if getattr(self, name) % self.workers:
+                raise HydoError(
+                    f"`{name}` ({getattr(self, name)}) must be a multiple of `workers` ({self.workers}): "
+                    "each worker takes an equal share"
+                )
         if self.max_minutes < 0:
             raise HydoError(f"`max_minutes` (--minutes) must be >= 0 (0: no budget). Got {self.max_minutes}.")
         if self.updates_per_step < 0:
@@ -124,6 +156,24 @@ class TrainConfig:
 
             if self.task not in TASK_NAMES:
                 raise HydoError(f"`task` must be one of {list(TASK_NAMES)}. Got {self.task!r}.")
+
+
+def _has_type(value: Any, annotation: str) -> bool:
+    """Whether a JSON value fits a TrainConfig field's annotation (``int``, ``float``, ``str | None``, ...)."""
+    kinds = {
+        "int": (int,),
+        "float": (int, float),
+        "str": (str,),
+        "dict": (dict,),
+        "bool": (bool,),
+        "None": (),
+    }
+    options = [a.strip() for a in annotation.split("|")]
+    if value is None:
+        return "None" in options
+    if isinstance(value, bool) and "bool" not in options:  # JSON true is not a step count
+        return False
+    return any(isinstance(value, kinds.get(a, (object,))) for a in options)
 
 
 #: Named starting points; flags and --config override them.
@@ -170,11 +220,7 @@ def agent_config(cfg: TrainConfig):
     """The learner's ``models.algos.AgentConfig`` of a run (imports torch)."""
     from models.algos import AgentConfig
 
-    return AgentConfig(
-        algo=cfg.algo,
-        n_obj=cfg.n_obj,
-        n_bg=cfg.n_bg,
-        seed=cfg.seed,
-        denoise_steps=cfg.denoise_steps,
-        **cfg.agent,
-    )
+    # ``cfg.agent`` holds the options a user set, or (in a run's config.json) the full resolved
+    # AgentConfig; the run's own fields win where both name one.
+    run = dict(algo=cfg.algo, n_obj=cfg.n_obj, n_bg=cfg.n_bg, seed=cfg.seed, denoise_steps=cfg.denoise_steps)
+    return AgentConfig.from_dict({**cfg.agent, **run})

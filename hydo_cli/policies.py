@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hydo_cli.config import CHECKPOINT_FORMAT, TrainConfig, agent_config
+from hydo_cli.config import CHECKPOINT_FORMAT, TrainConfig
 from hydo_cli.errors import HydoError
 from hydo_cli.rollout import Policy, baseline_policy
 from sim.primitive import feasibility_mask
@@ -136,7 +136,7 @@ def agent_policy(agent: HybridAgent, mode: str, generator: torch.Generator, feas
 def load_agent(path: Path) -> tuple[HybridAgent, TrainConfig, str]:
     """A run directory (its ``checkpoint.pt``) or a checkpoint file → ``(agent, config, command)``."""
     path = Path(path)
-    from models.algos import HybridAgent
+    from models.algos import AgentConfig, HybridAgent
     from models.checkpoint import CheckpointError, load_checkpoint
 
     ckpt_path = path / "checkpoint.pt" if path.is_dir() else path
@@ -147,7 +147,9 @@ def load_agent(path: Path) -> tuple[HybridAgent, TrainConfig, str]:
         raise CheckpointError(f"{ckpt_path}: checkpoint format {ckpt.get('format')} != {CHECKPOINT_FORMAT}")
     try:
         cfg = TrainConfig.from_dict(json.loads(ckpt["config"]), str(ckpt_path))
-        agent = HybridAgent(agent_config(cfg))
+        # The agent state records its full AgentConfig: a checkpoint made under older defaults
+        # (before normals and 16 critic motion directions, say) loads with its own settings.
+        agent = HybridAgent(AgentConfig.from_dict(ckpt["agent"]["config"]))
         agent.load_state_dict(ckpt["agent"])
     except (KeyError, TypeError, ValueError, RuntimeError, HydoError) as e:
         raise CheckpointError(

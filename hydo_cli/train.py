@@ -1,5 +1,5 @@
-"""``hydo train``: one process that interleaves env steps and gradient updates (the fastest layout on
-2 cores: env worker processes next to a 2-thread learner cut its throughput by 65-73%).
+"""``hydo train``: ``--workers`` processes (default 2, one per core), each stepping its share of the
+envs and computing the gradient of its share of every batch (``hydo_cli.trainer``).
 
 Run directory (``--out``)::
 
@@ -8,10 +8,12 @@ Run directory (``--out``)::
     metrics.jsonl    one line per log interval: env steps, updates, wall time, losses, temperatures
     eval.jsonl       periodic evaluation on held-out episodes (success rate, return)
     checkpoint.pt    latest checkpoint (atomic), also written at the end and on Ctrl-C
-    replay.npz       the replay buffer at the last checkpoint, so --resume continues exactly
+    replay.npz       worker 0's replay shard at the last checkpoint (replay-1.npz, worker-1.pt:
+                     worker 1's shard and RNG states), so --resume continues where it stopped
 
 ``--resume`` continues the step counter, networks, optimisers, temperatures, RNG and replay buffer;
-episodes in flight at the cut are restarted.
+episodes in flight at the cut are restarted, and log rows written after the checkpoint are dropped.
+A folder whose run was cut before its first checkpoint restarts from step 0.
 """
 
 from __future__ import annotations
@@ -95,9 +97,17 @@ def train(
     max_minutes: Annotated[
         float | None, typer.Option("--minutes", help="Wall-clock budget (0: none).")
     ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            "--workers",
+            help="Data-parallel worker processes, one per core: 2 alone on 2 cores, 1 if two runs "
+            "share them. [default: 2]",
+        ),
+    ] = None,
     threads: Annotated[
         int | None,
-        typer.Option("--threads", help="torch threads: 2 alone on 2 cores, 1 if two runs share them."),
+        typer.Option("--threads", help="torch threads per worker. [default: 1]"),
     ] = None,
     out: Annotated[
         Path | None, typer.Option("--out", help="Run directory (default: runs/<algo>-...).")
@@ -105,6 +115,13 @@ def train(
     resume: Annotated[
         Path | None, typer.Option("--resume", help="Continue the run in this directory.")
     ] = None,
+    fresh_replay: Annotated[
+        bool,
+        typer.Option(
+            "--fresh-replay",
+            help="On --resume, continue with an empty replay buffer if the saved one is missing.",
+        ),
+    ] = False,
     config: Annotated[Path | None, typer.Option("--config", help="TOML file of config keys.")] = None,
     preset: Annotated[str | None, typer.Option("--preset", help=f"One of {list(PRESETS)}.")] = None,
 ) -> None:
@@ -112,9 +129,7 @@ def train(
         run_dir = Path(resume)
         if not (run_dir / "config.json").exists():
             raise HydoError(f"--resume {run_dir}: not a run directory (no config.json)")
-        cfg = TrainConfig.from_dict(
-            json.loads((run_dir / "config.json").read_text()), str(run_dir / "config.json")
-        )
+        cfg = TrainConfig.load(run_dir / "config.json")
         fixed = {
             "--algo": algo, "--goals": goals, "--objects": objects, "--clutter": clutter, "--seed": seed,
             "--k": denoise_steps, "--task": task, "--config": config, "--preset": preset, "--out": out,
@@ -123,7 +138,7 @@ def train(
         if given:
             raise HydoError(
                 f"--resume continues {run_dir} with its own config.json: drop {', '.join(given)} "
-                "(only --steps, --minutes and --threads may change)"
+                "(only --steps, --minutes, --workers and --threads may change)"
             )
         if steps is not None:  # allow extending a finished run
             cfg = dataclasses.replace(cfg, steps=steps)
@@ -131,6 +146,8 @@ def train(
             cfg = dataclasses.replace(cfg, max_minutes=max_minutes)
         if threads is not None:  # a speed setting, not a learning one: may differ on resume
             cfg = dataclasses.replace(cfg, threads=threads)
+        if workers is not None:  # the checkpoint's replay shards must match (the trainer checks)
+            cfg = dataclasses.replace(cfg, workers=workers)
         if cfg.max_minutes < 0:
             raise HydoError(f"--minutes must be >= 0 (0: no budget). Got {cfg.max_minutes}.")
     else:
@@ -147,19 +164,28 @@ def train(
                 denoise_steps=denoise_steps,
                 max_minutes=max_minutes,
                 threads=threads,
+                workers=workers,
                 task=task.value if task else None,
             ),
         )
         run_dir = out or _default_out(cfg)
+        if run_dir.is_file():
+            raise HydoError(f"--out {run_dir} is a file, not a folder")
         if (run_dir / "checkpoint.pt").exists():
             raise HydoError(f"{run_dir} already holds a run; use --resume {run_dir} or another --out")
+        if any((run_dir / name).exists() for name in ("config.json", "metrics.jsonl", "eval.jsonl")):
+            raise HydoError(
+                f"{run_dir} holds a run cut before its first checkpoint; restart it with "
+                f"--resume {run_dir} or choose another --out"
+            )
     from hydo_cli.trainer import Trainer
 
-    trainer = Trainer(cfg, run_dir, resume=resume is not None)
+    trainer = Trainer(cfg, run_dir, resume=resume is not None, fresh_replay=fresh_replay)
     run_dir.mkdir(parents=True, exist_ok=True)
-    # on --resume too: the run's record holds its current --steps / --minutes / --threads
-    atomic_write_text(run_dir / "config.json", json.dumps(dataclasses.asdict(cfg), indent=2))
+    # on --resume too: the run's record holds its current --steps / --minutes / --threads and the
+    # full resolved agent configuration (trainer.cfg)
+    atomic_write_text(run_dir / "config.json", json.dumps(dataclasses.asdict(trainer.cfg), indent=2))
     if resume is None:
         atomic_write_text(run_dir / "command.txt", shlex.join(["hydo", *sys.argv[1:]]) + "\n")
         atomic_write_text(run_dir / "system.json", json.dumps({**system_info(), **trainer.cpu}, indent=2))
-    trainer.run()
+    trainer.run(fresh_replay)

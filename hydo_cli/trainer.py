@@ -1,7 +1,13 @@
 """The training loop behind ``hydo train``: envs, agent, replay, logging, evaluation, checkpoints.
 
-One process, ``n_envs`` envs in lock-step, one batched decision per step, then
-``updates_per_step × n_envs`` gradient updates (CleanRL-style, top to bottom).
+``workers`` processes (default 2, one per core) train one agent data-parallel
+(``models.distributed``): each steps ``n_envs / workers`` envs in lock-step into its own replay shard,
+makes one batched decision per step, then takes ``updates_per_step × n_envs`` gradient updates on
+``batch_size / workers`` transitions of its shard, averaging gradients with the others before every
+optimiser step. The update-to-data ratio is a setting, the same for any number of workers: every
+worker does the same number of updates per env step, by construction, not by timing. Worker 0 logs,
+evaluates and writes ``checkpoint.pt``; worker ``r`` > 0 saves ``replay-r.npz`` and ``worker-r.pt``
+(its RNG states) beside it. ``workers=1`` is the serial loop (CleanRL-style, top to bottom).
 """
 
 from __future__ import annotations
@@ -9,9 +15,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import multiprocessing
+import os
 import resource
 import signal
+import sys
+import threading
 import time
+import traceback
 from collections import deque
 from pathlib import Path
 
@@ -20,15 +31,20 @@ import torch
 
 from hydo_cli.config import CHECKPOINT_FORMAT, TrainConfig, agent_config
 from hydo_cli.envs import make_envs
+from hydo_cli.errors import HydoError
 from hydo_cli.policies import agent_policy
 from hydo_cli.rollout import run_episodes, summarize
-from models.algos import HybridAgent
-from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from models.algos import AgentConfig, HybridAgent
+from models.checkpoint import CheckpointError, load_checkpoint, load_replay, save_checkpoint
+from models.distributed import WorkerGroup, free_local_address
 from models.perf import configure_cpu
 from models.replay import ReplayBuffer, Transition
+from sim.atomic import atomic_write_text
 from sim.contract import SUCCESS_THRESHOLD_M, pose_matrix
 
 EVAL_SEED_OFFSET = 10_000  # evaluation episodes never share seeds with training episodes
+LOGS = ("metrics.jsonl", "eval.jsonl")
+STOP_BUDGET, STOP_SIGNAL = 1, 2  # why the workers stop (the largest reason any worker gives wins)
 
 
 class JsonlLog:
@@ -59,74 +75,188 @@ def tensorboard_writer(run_dir: Path):
     return SummaryWriter(str(run_dir / "tensorboard"), flush_secs=30)
 
 
+def read_run_checkpoint(path: Path) -> dict:
+    """A run's ``checkpoint.pt`` payload, or one clear error (unreadable, another format, no agent)."""
+    ckpt = load_checkpoint(path)
+    if int(ckpt.get("format", -1)) != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: checkpoint format {ckpt.get('format')} != {CHECKPOINT_FORMAT}")
+    if not isinstance(ckpt.get("agent"), dict) or not isinstance(ckpt["agent"].get("config"), dict):
+        raise CheckpointError(path, "holds no agent state")
+    return ckpt
+
+
+def truncate_logs(run_dir: Path, env_steps: int) -> None:
+    """Drop the log rows a cut run wrote after its last checkpoint (and unreadable half lines), so a
+    resumed run's history never repeats steps."""
+    for name in LOGS:
+        path = run_dir / name
+        if not path.exists():
+            continue
+        kept = []
+        for line in path.read_text().splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # the line being written when the run was killed
+            if isinstance(row, dict) and row.get("env_steps", math.inf) <= env_steps:
+                kept.append(line)
+        atomic_write_text(path, "".join(f"{line}\n" for line in kept))
+
+
 class Trainer:
-    def __init__(self, cfg: TrainConfig, run_dir: Path, resume: bool = False):
+    """One worker of a training run (``rank`` 0 is the one ``hydo train`` runs and spawns the others).
+
+    ``resume``: continue from ``run_dir/checkpoint.pt`` (a folder without one, left by a run cut
+    before its first checkpoint, restarts from step 0 with its logs emptied). ``fresh_replay``: on
+    resume, start from empty replay shards when they are missing instead of refusing.
+    """
+
+    def __init__(
+        self,
+        cfg: TrainConfig,
+        run_dir: Path,
+        resume: bool = False,
+        rank: int = 0,
+        fresh_replay: bool = False,
+    ):
         self.cpu = configure_cpu(cfg.threads)
-        self.cfg, self.run_dir = cfg, Path(run_dir)
+        self.run_dir = Path(run_dir)
+        self.rank, self.world = rank, cfg.workers
+        ckpt = read_run_checkpoint(self.checkpoint_path) if resume and self.checkpoint_path.exists() else None
+        self.resumed = ckpt is not None
+        # The checkpoint's own agent config wins: a run made under older defaults resumes with them.
+        agent_cfg = AgentConfig.from_dict(ckpt["agent"]["config"]) if ckpt else agent_config(cfg)
+        self.cfg = cfg = dataclasses.replace(cfg, agent=dataclasses.asdict(agent_cfg))  # the full record
         self.envs = make_envs(
             cfg.objects,
             cfg.goals,
             cfg.clutter,
             "mesh",
-            cfg.n_envs,
+            cfg.n_envs // self.world,
             cfg.n_obj,
             cfg.n_bg,
             task=cfg.task,
             task_start="random",
         )
-        torch.manual_seed(cfg.seed)
-        self.agent = HybridAgent(agent_config(cfg))
+        # Worker 0 keeps the serial loop's seeding; the others draw their own episodes and noise.
+        seed = cfg.seed if rank == 0 else cfg.seed + 1_000_003 * rank
+        torch.manual_seed(seed)
+        self.agent = HybridAgent(agent_cfg)  # identical initial weights on every worker
+        if rank:
+            self.agent.generator.manual_seed(seed + 1)
         self.buffer = ReplayBuffer(
-            cfg.buffer_size, cfg.n_obj, cfg.n_bg, seed=cfg.seed, success_threshold=SUCCESS_THRESHOLD_M
+            cfg.buffer_size // self.world,
+            cfg.n_obj,
+            cfg.n_bg,
+            seed=seed,
+            success_threshold=SUCCESS_THRESHOLD_M,
         )
-        self.rng = np.random.default_rng(cfg.seed)
-        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.rng = np.random.default_rng(seed)
+        self.generator = torch.Generator().manual_seed(seed)
         self.env_steps = 0
         self.updates = 0
         self.episodes = 0
         self.wall_s = 0.0  # accumulated over resumes
         self.recent_success: deque[float] = deque(maxlen=100)
         self.recent_return: deque[float] = deque(maxlen=100)
-        if resume:
-            self.load()
+        self.stop_reason = 0
+        self.group: WorkerGroup | None = None
+        if ckpt is not None:
+            self.load(ckpt, fresh_replay)
+        elif resume and rank == 0:  # a run cut before its first checkpoint: from step 0, clean logs
+            truncate_logs(self.run_dir, -1)
 
     # --- checkpoints -----------------------------------------------------------------------------
     @property
     def checkpoint_path(self) -> Path:
         return self.run_dir / "checkpoint.pt"
 
-    def save(self) -> None:
-        """Replay first, then the checkpoint that refers to it: a cut between the two loses nothing."""
-        self.buffer.save(self.run_dir / "replay.npz")
-        save_checkpoint(
-            self.checkpoint_path,
-            {
-                "format": CHECKPOINT_FORMAT,
-                "config": json.dumps(dataclasses.asdict(self.cfg)),
-                "agent": self.agent.state_dict(),
-                "counters": torch.tensor([self.env_steps, self.updates, self.episodes], dtype=torch.int64),
-                "wall_s": torch.tensor(self.wall_s, dtype=torch.float64),
-                "torch_rng": torch.get_rng_state(),
-                "generator": self.generator.get_state(),
-                "np_rng": json.dumps(self.rng.bit_generator.state),
-            },
-        )
+    def shard_paths(self, rank: int) -> tuple[Path, Path]:
+        """Worker ``rank``'s replay shard and (rank > 0) its own state file."""
+        if rank == 0:
+            return self.run_dir / "replay.npz", self.checkpoint_path
+        return self.run_dir / f"replay-{rank}.npz", self.run_dir / f"worker-{rank}.pt"
 
-    def load(self) -> None:
-        ckpt = load_checkpoint(self.checkpoint_path)
-        if int(ckpt.get("format", -1)) != CHECKPOINT_FORMAT:
-            raise CheckpointError(
-                f"{self.checkpoint_path}: checkpoint format {ckpt.get('format')} != {CHECKPOINT_FORMAT}"
+    def _rng_state(self) -> dict:
+        return {
+            "torch_rng": torch.get_rng_state(),
+            "generator": self.generator.get_state(),
+            "np_rng": json.dumps(self.rng.bit_generator.state),
+        }
+
+    def save(self) -> None:
+        """Every worker writes its replay shard (and worker r > 0 its RNG states); then worker 0 writes
+        the checkpoint that refers to them. A cut in between loses nothing: the shards are at most a
+        checkpoint interval newer than the checkpoint."""
+        replay, state = self.shard_paths(self.rank)
+        self.buffer.save(replay)
+        if self.rank:
+            save_checkpoint(
+                state,
+                {
+                    "format": CHECKPOINT_FORMAT,
+                    "env_steps": self.env_steps,
+                    "agent_generator": self.agent.generator.get_state(),
+                    **self._rng_state(),
+                },
+            )
+        if self.group is not None:
+            self.group.barrier()
+        if self.rank == 0:
+            save_checkpoint(
+                self.checkpoint_path,
+                {
+                    "format": CHECKPOINT_FORMAT,
+                    "config": json.dumps(dataclasses.asdict(self.cfg)),
+                    "agent": self.agent.state_dict(),
+                    "counters": torch.tensor(
+                        [self.env_steps, self.updates, self.episodes], dtype=torch.int64
+                    ),
+                    "wall_s": torch.tensor(self.wall_s, dtype=torch.float64),
+                    "workers": self.world,
+                    **self._rng_state(),
+                },
+            )
+
+    def load(self, ckpt: dict, fresh_replay: bool = False) -> None:
+        saved_workers = int(ckpt.get("workers", 1))
+        if saved_workers != self.world:
+            raise HydoError(
+                f"{self.checkpoint_path} was trained with {saved_workers} worker(s) (replay shards); "
+                f"resume it with the same --workers, not {self.world}"
             )
         self.agent.load_state_dict(ckpt["agent"])
         self.env_steps, self.updates, self.episodes = (int(v) for v in ckpt["counters"])
         self.wall_s = float(ckpt["wall_s"])
-        torch.set_rng_state(ckpt["torch_rng"])
-        self.generator.set_state(ckpt["generator"])
-        self.rng.bit_generator.state = json.loads(ckpt["np_rng"])
-        replay = self.run_dir / "replay.npz"
+        state = ckpt
+        replay, state_path = self.shard_paths(self.rank)
+        if self.rank:
+            state = read_worker_state(state_path)
+            self.agent.generator.set_state(state["agent_generator"])
+        torch.set_rng_state(state["torch_rng"])
+        self.generator.set_state(state["generator"])
+        self.rng.bit_generator.state = json.loads(state["np_rng"])
         if replay.exists():
-            self.buffer = ReplayBuffer.load(replay)
+            self.buffer = load_replay(replay, self.cfg.n_obj, self.cfg.n_bg)
+        elif not fresh_replay:
+            raise HydoError(
+                f"{replay} is missing: resuming would train on an empty replay buffer. "
+                "Restore it, or pass --fresh-replay to continue with an empty one"
+            )
+        if self.rank == 0:
+            truncate_logs(self.run_dir, self.env_steps)
+
+    def check_resumable(self, fresh_replay: bool) -> None:
+        """Worker 0, before spawning the others: every worker's files are there (so no worker fails
+        after the others started waiting for it)."""
+        for r in range(1, self.world):
+            replay, state = self.shard_paths(r)
+            read_worker_state(state)
+            if not replay.exists() and not fresh_replay:
+                raise HydoError(
+                    f"{replay} is missing: resuming would train on an empty replay shard. "
+                    "Restore it, or pass --fresh-replay to continue with an empty one"
+                )
 
     # --- the loop --------------------------------------------------------------------------------
     def evaluate(self) -> dict:
@@ -138,15 +268,74 @@ class Trainer:
         )
         return summarize(results)
 
-    def run(self) -> None:
+    def run(self, fresh_replay: bool = False) -> None:
+        """Worker 0: start the other workers, train, and report (``hydo train`` calls this)."""
+        if self.world == 1:
+            self._train()
+            return
+        if self.resumed:
+            self.check_resumable(fresh_replay)
+        address = free_local_address()
+        ctx = multiprocessing.get_context("spawn")
+        cfg = dataclasses.asdict(self.cfg)
+        workers = [
+            ctx.Process(
+                target=_worker_main,
+                args=(cfg, str(self.run_dir), self.resumed, rank, address, fresh_replay),
+                daemon=True,
+                name=f"hydo-worker-{rank}",
+            )
+            for rank in range(1, self.world)
+        ]
+        for w in workers:
+            w.start()
+        done = threading.Event()
+        threading.Thread(target=_watch_workers, args=(workers, done), daemon=True).start()
+        try:
+            self.group = WorkerGroup(0, self.world, address)
+            self._train()
+        finally:
+            done.set()
+            if self.group is not None:
+                self.group.close()
+            for w in workers:
+                w.join(timeout=60)
+
+    def _exchange(self, stop: int, finished: list[tuple[float, float]]) -> int:
+        """Once per step, every worker: agree on stopping (the largest reason) and pool the episodes
+        that ended (``(success, return)`` each) into the recent-success window. Returns the reason."""
+        if self.group is None:
+            rows = [(stop, finished)]
+        else:
+            k = len(self.envs)  # at most one episode per env per step
+            row = np.zeros(2 + 2 * k)
+            row[0], row[1] = stop, len(finished)
+            for j, (succ, ret) in enumerate(finished):
+                row[2 + j], row[2 + k + j] = succ, ret
+            rows = [
+                (int(r[0]), [(r[2 + j], r[2 + k + j]) for j in range(int(r[1]))])
+                for r in self.group.gather(row)
+            ]
+        for _, eps in rows:
+            for succ, ret in eps:
+                self.episodes += 1
+                self.recent_success.append(float(succ))
+                self.recent_return.append(float(ret))
+        return max(r for r, _ in rows)
+
+    def _train(self) -> None:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-        cfg = self.cfg
-        tb = tensorboard_writer(self.run_dir)
-        metrics_log = JsonlLog(self.run_dir / "metrics.jsonl", tb, "train")
-        eval_log = JsonlLog(self.run_dir / "eval.jsonl", tb, "eval")
+        cfg, lead = self.cfg, self.rank == 0
+        if self.group is not None:
+            self.agent.sync_gradients = self.group.average_gradients
+        batch_size = cfg.batch_size // self.world
+        tb = tensorboard_writer(self.run_dir) if lead else None
+        metrics_log = JsonlLog(self.run_dir / "metrics.jsonl", tb, "train") if lead else None
+        eval_log = JsonlLog(self.run_dir / "eval.jsonl", tb, "eval") if lead else None
         obs = [env.reset(seed=int(self.rng.integers(2**31)))[0] for env in self.envs]
         ep_return = np.zeros(len(self.envs))
+        finished: list[tuple[float, float]] = []
         last_metrics: dict[str, float] = {}
         t_start = time.perf_counter() - self.wall_s
         updates_at_log, t_log = self.updates, time.perf_counter()
@@ -154,12 +343,18 @@ class Trainer:
         next_eval = (self.env_steps // cfg.eval_every + 1) * cfg.eval_every if cfg.eval_every else math.inf
         next_ckpt = (self.env_steps // cfg.checkpoint_every + 1) * cfg.checkpoint_every
         next_log = (self.env_steps // cfg.log_every + 1) * cfg.log_every
-        interrupted = False
+        budget_s = cfg.max_minutes * 60 if cfg.max_minutes > 0 else math.inf
+        signalled = False
 
-        def on_sigterm(signum, frame):  # treat SIGTERM like Ctrl-C: checkpoint, then stop
-            raise KeyboardInterrupt
+        def on_signal(signum, frame):
+            # Ctrl-C / SIGTERM: finish the step, agree with the other workers, checkpoint, stop. A
+            # second one stops at once (the last checkpoint stays valid: writes are atomic).
+            nonlocal signalled
+            if signalled:
+                raise KeyboardInterrupt
+            signalled = True
 
-        old_handler = signal.signal(signal.SIGTERM, on_sigterm)
+        old_handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         progress = Progress(
             TextColumn(f"[bold]{cfg.algo}[/] {cfg.task or f'{cfg.goals}/{cfg.objects}'}"),
             BarColumn(),
@@ -168,12 +363,18 @@ class Trainer:
             TimeElapsedColumn(),
             console=None,
             transient=False,
+            disable=not lead,
         )
         task = progress.add_task("train", total=cfg.steps, completed=self.env_steps, stats="")
         try:
             with progress:
-                budget_s = cfg.max_minutes * 60 if cfg.max_minutes > 0 else math.inf
-                while self.env_steps < cfg.steps and time.perf_counter() - t_start < budget_s:
+                while self.env_steps < cfg.steps:
+                    over_budget = lead and time.perf_counter() - t_start >= budget_s
+                    local_stop = STOP_SIGNAL if signalled else STOP_BUDGET if over_budget else 0
+                    self.stop_reason = self._exchange(local_stop, finished)
+                    finished = []
+                    if self.stop_reason:
+                        break
                     # 1. act: random before learning starts, then the agent's exploration policy
                     if self.env_steps < cfg.learning_starts:
                         actions = [
@@ -205,70 +406,56 @@ class Trainer:
                         )
                         ep_return[k] += reward
                         if terminated or truncated:
-                            self.episodes += 1
-                            self.recent_success.append(float(info["success"]))
-                            self.recent_return.append(ep_return[k])
+                            finished.append((float(info["success"]), float(ep_return[k])))
                             ep_return[k] = 0.0
                             next_obs, _ = env.reset(seed=int(self.rng.integers(2**31)))
                         obs[k] = next_obs
                     self.buffer.add(Transition(*(np.asarray(col) for col in zip(*rows, strict=True))))
-                    self.env_steps += len(self.envs)
+                    self.env_steps += cfg.n_envs  # all workers stepped their share
                     # 3. learn: updates_per_step gradient updates per env step, carried over fractions
-                    if self.env_steps >= cfg.learning_starts and len(self.buffer) >= cfg.batch_size:
-                        update_debt += cfg.updates_per_step * len(self.envs)
+                    if self.env_steps >= cfg.learning_starts and len(self.buffer) >= batch_size:
+                        update_debt += cfg.updates_per_step * cfg.n_envs
                         while update_debt >= 1.0:
-                            sampled = self.buffer.sample(cfg.batch_size, cfg.relabel_future)
+                            sampled = self.buffer.sample(batch_size, cfg.relabel_future)
                             last_metrics = self.agent.update(sampled)
                             self.updates += 1
                             update_debt -= 1.0
-                    # 4. log, evaluate, checkpoint
+                    # 4. log, evaluate (worker 0), checkpoint (every worker)
                     now = time.perf_counter()
                     if self.env_steps >= next_log:
                         ups = (self.updates - updates_at_log) / max(now - t_log, 1e-9)
                         updates_at_log, t_log = self.updates, now
-                        row = {
-                            "env_steps": self.env_steps,
-                            "updates": self.updates,
-                            "episodes": self.episodes,
-                            "wall_s": now - t_start,
-                            "updates_per_s": ups,
-                            # peak resident memory of this process so far (Linux reports KiB)
-                            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                            "replay_bytes_per_transition": self.buffer.bytes_per_transition,
-                            "replay_size": len(self.buffer),
-                            "success_recent": float(np.mean(self.recent_success))
-                            if self.recent_success
-                            else None,
-                            "return_recent": float(np.mean(self.recent_return))
-                            if self.recent_return
-                            else None,
-                            **{k: float(v) for k, v in last_metrics.items()},
-                        }
-                        metrics_log.write(row)
-                        succ = row["success_recent"]
-                        progress.update(
-                            task,
-                            stats=f"upd/s {ups:5.1f}  success {'-' if succ is None else f'{succ:.0%}'}"
-                            f"  return {row['return_recent'] or 0:.3f}",
-                        )
+                        if lead:
+                            row = self._metrics_row(now - t_start, ups, last_metrics)
+                            metrics_log.write(row)
+                            left = budget_s - (now - t_start)
+                            succ = row["success_recent"]
+                            progress.update(
+                                task,
+                                stats=f"upd/s {ups:5.1f}  success {'-' if succ is None else f'{succ:.0%}'}"
+                                f"  return {row['return_recent'] or 0:.3f}"
+                                + (f"  {left / 60:.0f} min left" if math.isfinite(left) else ""),
+                            )
                         next_log += cfg.log_every
                     if self.env_steps >= next_eval:
-                        self._eval_and_log(eval_log, t_start, progress)
+                        if lead:
+                            self._eval_and_log(eval_log, t_start, progress)
                         next_eval += cfg.eval_every
                     if self.env_steps >= next_ckpt:
                         self.wall_s = time.perf_counter() - t_start
                         self.save()
                         next_ckpt += cfg.checkpoint_every
                     progress.update(task, completed=self.env_steps)
-        except KeyboardInterrupt:
-            interrupted = True
         finally:
-            signal.signal(signal.SIGTERM, old_handler)
+            for s, h in old_handlers.items():
+                signal.signal(s, h)
             if tb is not None:
                 tb.flush()
         self.wall_s = time.perf_counter() - t_start
         self.save()
-        if interrupted:
+        if not lead:
+            return
+        if self.stop_reason == STOP_SIGNAL:
             progress.console.print(
                 f"interrupted: checkpoint saved at {self.env_steps} env steps; resume with "
                 f"`hydo train --resume {self.run_dir}`"
@@ -282,6 +469,23 @@ class Trainer:
         )
         if tb is not None:
             tb.close()
+
+    def _metrics_row(self, wall_s: float, ups: float, last_metrics: dict[str, float]) -> dict:
+        return {
+            "env_steps": self.env_steps,
+            "updates": self.updates,
+            "episodes": self.episodes,
+            "wall_s": wall_s,
+            "updates_per_s": ups,
+            "workers": self.world,
+            # peak resident memory of this process so far (Linux reports KiB)
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "replay_bytes_per_transition": self.buffer.bytes_per_transition,
+            "replay_size": len(self.buffer) * self.world,
+            "success_recent": float(np.mean(self.recent_success)) if self.recent_success else None,
+            "return_recent": float(np.mean(self.recent_return)) if self.recent_return else None,
+            **{k: float(v) for k, v in last_metrics.items()},
+        }
 
     def _eval_and_log(self, eval_log: JsonlLog, t_start: float, progress) -> None:
         summary = self.evaluate()
@@ -298,3 +502,46 @@ class Trainer:
             f"eval @ {self.env_steps} steps ({row['wall_s'] / 60:.1f} min): success {row['success_rate']:.0%} "
             f"over {row['episodes']} episodes, return {row['mean_return']:.3f}"
         )
+
+
+def read_worker_state(path: Path) -> dict:
+    """Worker r > 0's ``worker-r.pt`` (its RNG states), or one clear error."""
+    if not path.exists():
+        raise HydoError(f"{path} is missing: this run's worker state cannot be resumed")
+    state = load_checkpoint(path)
+    if int(state.get("format", -1)) != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: worker state format {state.get('format')} != {CHECKPOINT_FORMAT}")
+    return state
+
+
+def _worker_main(cfg: dict, run_dir: str, resume: bool, rank: int, address: str, fresh_replay: bool) -> None:
+    """Entry point of worker ``rank`` > 0 (a spawned process): same loop, no logs or evaluation."""
+    group = None
+    try:
+        trainer = Trainer(
+            TrainConfig(**cfg), Path(run_dir), resume=resume, rank=rank, fresh_replay=fresh_replay
+        )
+        trainer.group = group = WorkerGroup(rank, trainer.world, address)
+        trainer._train()
+    except BaseException:
+        traceback.print_exc()
+        sys.stderr.flush()
+        os._exit(1)
+    finally:
+        if group is not None:
+            group.close()
+
+
+def _watch_workers(workers: list, done: threading.Event) -> None:
+    """Worker 0's watchdog: a worker that dies (a crash, the OOM killer) would leave worker 0 waiting
+    at the next collective for the group's timeout. Stop the run at once instead; the last
+    checkpoint stays valid (atomic writes)."""
+    while not done.wait(1.0):
+        for w in workers:
+            if not w.is_alive() and w.exitcode not in (0, None):
+                print(
+                    f"error: training worker {w.name} died (exit code {w.exitcode}); "
+                    "the run stopped at its last checkpoint: resume it with `hydo train --resume`",
+                    file=sys.stderr,
+                )
+                os._exit(1)

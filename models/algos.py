@@ -88,18 +88,23 @@ class AgentConfig:
     """Width of each max-pooled global feature (object, background); 128 costs ~15 % of updates/s."""
     length_scale: float = 0.1
     """Metres per network unit for positions and goal flow inside the encoder."""
-    encoder_normals: bool = False
-    """The encoder also takes the object points' normals (``PointEncoder(normals=True)``; the ONNX
-    encoder then has a third input, ``normals``)."""
+    encoder_normals: bool = True
+    """The encoder also takes the object points' unit normals (``PointEncoder(normals=True)``; the
+    ONNX encoder then has a third input, ``normals``). What a push does depends on the surface the
+    fingertip approaches along (the primitive starts at p + 0.04·n), which a PointNet cannot estimate
+    from one point: with it and ``critic_motion_dirs=16``, 60-min planar runs reached 78.4 / 81.6 %
+    against 62.4 / 67.6 % without (docs/results.md). False in checkpoints made before it was the
+    default."""
 
     # heads
     actor_hidden: int = 64
     """Width of the motion policy / denoiser MLP."""
     critic_hidden: int = 64
     """Width of each Q head."""
-    critic_motion_dirs: int = 0
+    critic_motion_dirs: int = 16
     """k > 0: the Q heads' first layer also gets k bilinear terms ``u_j(f_i) · a`` (learned directions
-    from the point's features dotted with the motion, ``heads.TwinQ``); 0: ``[f_i, a]`` only."""
+    from the point's features dotted with the motion, ``heads.TwinQ``); 0: ``[f_i, a]`` only (the
+    default before 16 measured better: docs/results.md)."""
     eval_weights: str = "average"
     """Weights that act in ``mode="eval"`` (evaluation, export, deploy): "average", the Polyak-averaged
     target encoder and critic (and TD3's target motion policy; SAC has no target policy, its online one
@@ -146,8 +151,9 @@ class AgentConfig:
     """Adam learning rate of encoder + critic."""
     lr_actor: float = 3e-4
     """Adam learning rate of the motion policy."""
-    policy_delay: int | None = None
-    """Critic updates per actor update (None: td3 → 2 as in TD3, sac → 1)."""
+    policy_delay: int | None = 2
+    """Critic updates per actor update, for every algorithm (TD3's 2; the measured best setting used
+    it for hydo-cm too). None: td3 → 2, sac → 1 (the default before; old checkpoints record it)."""
     actor_points: int | None = 16
     """Points per state differentiated in the actor loss, drawn from π_loc (None = all points, exact
     gradient; m = unbiased estimate after a no-grad scoring pass over all points, see ``update``)."""
@@ -419,8 +425,20 @@ class HybridAgent:
             self.alpha_optimizer = None
         self.n_updates = 0
         self.generator = torch.Generator().manual_seed(config.seed + 1)  # update noise only
+        #: Called on each optimiser's parameters between backward and step. Data-parallel training
+        #: (``hydo_cli.trainer`` with ``workers > 1``) sets it to average the gradients over the
+        #: workers' half-batches, so every replica takes the same step on the full batch.
+        self.sync_gradients: Callable[[list[torch.Tensor]], None] | None = None
 
     # ------------------------------------------------------------------ helpers
+    def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
+        """zero_grad → backward → (gradient sync across data-parallel workers) → step."""
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.sync_gradients is not None:
+            self.sync_gradients([p for g in optimizer.param_groups for p in g["params"]])
+        optimizer.step()
+
     def _randn(self, *shape: int) -> torch.Tensor:
         return torch.randn(shape, generator=self.generator)
 
@@ -619,9 +637,7 @@ class HybridAgent:
         # 3. Critic loss on the executed (index, motion); trains encoder + critic.
         q_taken = self.critic(f_taken, batch.motion)  # (B, 2)
         critic_loss = F.mse_loss(q_taken[:, 0], target_q) + F.mse_loss(q_taken[:, 1], target_q)
-        self.critic_optimizer.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        self.critic_optimizer.step()
+        self._step(self.critic_optimizer, critic_loss)
         out.update(critic_loss=critic_loss.item(), q=q_taken.mean().item(), target_q=target_q.mean().item())
 
         if actor_step:
@@ -643,9 +659,7 @@ class HybridAgent:
                     )  # (B, m, 3)
                     q_sub = self._actor_q(f_sub, a_sub)  # (B, m)
                     surrogate = (coef * q_sub + alpha_m * logp_sub).mean(-1).mean()
-                self.actor_optimizer.zero_grad(set_to_none=True)
-                surrogate.backward()
-                self.actor_optimizer.step()
+                self._step(self.actor_optimizer, surrogate)
                 out["actor_loss"] = weights.loss.mean().item()
             else:
                 with frozen(self.critic):
@@ -654,9 +668,7 @@ class HybridAgent:
                     pi, log_pi = location_policy(q, alpha_loc)  # (B, N_obj)
                     j = -q + alpha_loc * log_pi + alpha_m * logp if self.is_sac else -q  # (B, N_obj) J_i
                     actor_loss = (pi * j).sum(-1).mean()
-                self.actor_optimizer.zero_grad(set_to_none=True)
-                actor_loss.backward()
-                self.actor_optimizer.step()
+                self._step(self.actor_optimizer, actor_loss)
                 out["actor_loss"] = actor_loss.item()
                 pi, log_pi, logp = pi.detach(), log_pi.detach(), logp.detach()
 
@@ -669,9 +681,7 @@ class HybridAgent:
                     alpha_loss
                     + self.log_alpha_motion * (entropy_motion - cfg.resolved_target_entropy_motion).mean()
                 )
-                self.alpha_optimizer.zero_grad(set_to_none=True)
-                alpha_loss.backward()
-                self.alpha_optimizer.step()
+                self._step(self.alpha_optimizer, alpha_loss)
                 out.update(
                     entropy_loc=entropy_loc.mean().item(),
                     entropy_motion=entropy_motion.mean().item(),

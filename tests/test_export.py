@@ -93,8 +93,10 @@ def test_fixed_noise_gives_identical_motions(exported):
     feats[:, :32, 0] = 1
     feats[:, :32, 1:] = rng.normal(0, 0.05, (2, 32, 3))
     noise = policy.noise(2, rng)
-    a = policy.decide(pts, feats, noise)
-    b = policy.decide(pts, feats, noise)
+    normals = rng.normal(size=(2, 32, 3)).astype(np.float32)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    a = policy.decide(pts, feats, noise, normals)
+    b = policy.decide(pts, feats, noise, normals)
     np.testing.assert_array_equal(a["motions"], b["motions"])
     assert np.all(np.abs(a["motions"]) <= 1.0)
 
@@ -114,8 +116,9 @@ def test_runner_imports_no_torch(exported, tmp_path):
         p = OnnxPolicy.load({str(out)!r})
         n = p.n_obj + p.n_bg
         feats = np.zeros((n, 4), np.float32); feats[: p.n_obj, 0] = 1
+        nrm = np.tile(np.float32([0, 0, 1]), (p.n_obj, 1))
         i, m, _ = p.act(np.random.default_rng(0).uniform(-0.1, 0.1, (n, 3)).astype(np.float32), feats,
-                        np.random.default_rng(1))
+                        np.random.default_rng(1), nrm)
         assert 0 <= i < p.n_obj and m.shape == (3,)
         assert "torch" not in sys.modules
         print("ok")

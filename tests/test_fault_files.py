@@ -481,13 +481,6 @@ CONFIG_CASES = {
 }
 
 
-# strict: an XPASS fails the suite, so the marker goes as soon as --resume reads config.json checked
-@pytest.mark.xfail(
-    strict=True,
-    reason="train --resume parses config.json in hydo_cli/train.py + config.py (the training loop's "
-    "owner): JSON errors and wrong types raise, an unknown enum's line does not name the file; see the "
-    "issue-17 report",
-)
 @pytest.mark.parametrize("case", CONFIG_CASES)
 def test_config_json(case, run, capsys, monkeypatch):
     path = run / "config.json"

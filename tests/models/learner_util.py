@@ -12,6 +12,9 @@ SMALL = dict(
     actor_hidden=32,
     critic_hidden=32,
     actor_points=8,
+    # The update's maths does not depend on what the encoder reads; the default normals input is
+    # exercised by test_algos.test_act_and_update_with_normals, tests/test_export.py and test_train.
+    encoder_normals=False,
 )
 
 

@@ -244,3 +244,22 @@ def test_export_modules_reproduce_eval_act(algo):
     q_sel = q.amin(-1) if agent.is_sac else q[..., 0]
     assert torch.equal(q_sel.argmax(-1), index)
     assert torch.allclose(motions[torch.arange(3), index], motion)
+
+
+def test_act_and_update_with_normals():
+    """The default encoder reads the object points' normals: acting needs them and they change Q;
+    an update with normals in the batch runs and moves the encoder's normal weights."""
+    cfg = AgentConfig(algo="hydo-cm", **{**SMALL, "encoder_normals": True})
+    agent = HybridAgent(cfg)
+    points, features = random_obs(2, cfg.n_obj, cfg.n_bg)
+    g = torch.Generator().manual_seed(0)
+    up = torch.nn.functional.normalize(torch.randn(2, cfg.n_obj, 3, generator=g), dim=-1)
+    with pytest.raises(ValueError, match="normals"):
+        agent.act(points, features, "eval", torch.Generator().manual_seed(0))
+    q_up = agent.act(points, features, "eval", torch.Generator().manual_seed(0), normals=up)[2]["q"]
+    q_down = agent.act(points, features, "eval", torch.Generator().manual_seed(0), normals=-up)[2]["q"]
+    assert not torch.allclose(q_up, q_down)
+    before = [p.detach().clone() for p in agent.encoder.parameters()]
+    batch = make_batch(4, cfg.n_obj, cfg.n_bg, normals=up.repeat(2, 1, 1), next_normals=up.repeat(2, 1, 1))
+    agent.update(batch)
+    assert any(not torch.equal(a, b) for a, b in zip(before, agent.encoder.parameters(), strict=True))
