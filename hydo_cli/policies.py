@@ -53,7 +53,9 @@ def load_policy(
     checkpoint's ``AgentConfig.eval_weights``, ``chain_noise``: "sample" | "zero" its
     ``eval_chain_noise`` (None keeps them; baselines and exported models ignore both)."""
     if target in BASELINES:
-        return LoadedPolicy(baseline_policy(target, seed), None, None, target == "random", target, target)
+        return LoadedPolicy(
+            baseline_policy(target, seed, feasible_only), None, None, target == "random", target, target
+        )
     path = Path(target)
     if not path.exists():
         raise HydoError(

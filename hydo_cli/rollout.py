@@ -116,10 +116,19 @@ def summarize(results: Sequence[EpisodeResult]) -> dict:
     }
 
 
-def baseline_policy(name: str, seed: int) -> Policy:
-    """``random`` or ``heuristic`` from ``sim.baselines`` as a batched policy with its own RNG."""
-    from sim.baselines import POLICIES
+def baseline_policy(name: str, seed: int, feasible_only: bool = True) -> Policy:
+    """``random`` or ``heuristic`` from ``sim.baselines`` as a batched policy with its own RNG.
+
+    ``feasible_only``: the heuristic chooses among the points whose push can run, under the same
+    feasibility mask as the learned policies (``random`` stays uniform: it is the floor)."""
+    from sim.baselines import POLICIES, heuristic_action
+    from sim.primitive import feasibility_mask
 
     act = POLICIES[name]
     rng = np.random.default_rng(seed)
+    if act is heuristic_action and feasible_only:
+        return lambda observations: [
+            heuristic_action(o, rng, feasibility_mask(o["points"][None], o["normals"][None]))
+            for o in observations
+        ]
     return lambda observations: [act(o, rng) for o in observations]

@@ -18,6 +18,19 @@ CASES = {
     "inference.py": (["--runs", "3"], lambda d: d["ort_ms_median"] > 0),
     "lookahead.py": (["--candidates", "4", "--episodes", "1"], lambda d: "C=4" in d),
     "sim.py": (["--seconds", "1"], lambda d: d["mesh_steps_per_s"] > 0),
+    "trainer.py": (
+        ["--seconds", "15", "--goals", "planar", "--objects", "cube", "--log-every", "8"]
+        + [
+            x
+            for line in ("n_envs = 4", "n_obj = 32", "n_bg = 32", "batch_size = 8", "learning_starts = 16")
+            for x in ("--set", line)
+        ],
+        lambda d: (
+            d["updates_speedup"] > 0
+            and d["default"]["updates_per_env_step"]
+            == pytest.approx(d["serial"]["updates_per_env_step"], rel=0.2)
+        ),
+    ),
 }
 
 

@@ -126,3 +126,26 @@ def test_palm_must_stay_off_the_walls_through_the_push():
     assert within_walls(primitive_waypoints(point, normal, away)[..., 0, :])  # the start alone is fine
     assert feasible_points(point, normal, away, cloud)[0, 0]
     assert not feasible_points(point, normal, toward_wall, cloud)[0, 0]  # push ends at y = -0.19
+
+
+def test_heuristic_pushes_only_where_the_mask_allows():
+    """The scripted heuristic gets the learned policies' feasibility mask: on observations where it
+    would otherwise pick points whose push the gate or the start-pose test refuses, it picks only
+    feasible points (when any exist), and its motion is unchanged."""
+    from sim.baselines import heuristic_action
+
+    env = BinEnv("train", "planar")
+    masked_ok, unmasked_bad = [], 0
+    for seed in range(40):
+        obs, _ = env.reset(seed=seed)
+        pts, nrm = obs["points"][None], obs["normals"][None]
+        mask = feasibility_mask(pts, nrm)
+        i0, m0 = heuristic_action(obs, np.random.default_rng(seed))
+        i1, m1 = heuristic_action(obs, np.random.default_rng(seed), mask)
+        np.testing.assert_array_equal(m0, m1)
+        allowed = mask(np.broadcast_to(m1, (1, len(nrm[0]), 3)))[0]
+        if not allowed.all():  # rows with no feasible point allow every point
+            masked_ok.append(bool(allowed[i1]))
+            unmasked_bad += int(not allowed[i0])
+    assert masked_ok and all(masked_ok)
+    assert unmasked_bad > 0  # the unmasked heuristic does pick refused points on these episodes

@@ -1,0 +1,136 @@
+"""Env steps and gradient updates per hour of the real training loop: default vs one core, serial.
+
+Runs ``hydo train`` twice for ``--seconds`` each, on the default config (6D goals unless told
+otherwise), in this order:
+
+* **default**: as a user runs it (``--workers 2``: both cores, data-parallel, ``hydo_cli.trainer``);
+* **serial**: the same loop confined to one core (``--workers 1 --threads 1``, the process pinned to
+  CPU 0 with ``sched_setaffinity``), env steps and updates interleaved.
+
+Rates are read from each run's ``metrics.jsonl`` between the first row with updates (learning has
+started) and the last one, so start-up and the random-action warm-up are not counted. Evaluation is
+off (``eval_every = 0``) so that both runs spend their time on the loop alone. Prints a table;
+``--json FILE`` writes ``{"default": {...}, "serial": {...}, "env_steps_speedup", "updates_speedup",
+"meta"}`` where each run has ``env_steps_per_hour``, ``updates_per_hour`` and
+``updates_per_env_step`` (the update-to-data ratio, a setting: equal in both).
+
+Run it on an otherwise idle machine::
+
+    python bench/trainer.py --seconds 180 --json out/trainer.json
+    python bench/trainer.py --goals planar --seconds 120
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from sim.atomic import atomic_write_text  # noqa: E402
+
+LAYOUTS = {"default": ["--workers", "2"], "serial": ["--workers", "1", "--threads", "1"]}
+
+
+def run_loop(name: str, args: argparse.Namespace, folder: Path) -> dict:
+    """One ``hydo train`` of ``args.seconds``; its steady-state rates from ``metrics.jsonl``."""
+    toml = folder / f"{name}.toml"
+    toml.write_text(
+        f'goals = "{args.goals}"\nobjects = "{args.objects}"\nsteps = 1000000000\n'
+        f"max_minutes = {args.seconds / 60}\neval_every = 0\neval_episodes = 1\n"
+        f"checkpoint_every = 1000000000\nlog_every = {args.log_every}\n"
+        + "".join(f"{line}\n" for line in args.set)
+    )
+    run = folder / name
+    cmd = [sys.executable, "-m", "hydo_cli.main", "train", "--config", str(toml), "--out", str(run)]
+    cmd += LAYOUTS[name]
+    pin = (
+        (lambda: os.sched_setaffinity(0, {0}))
+        if name == "serial" and hasattr(os, "sched_setaffinity")
+        else None
+    )
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, preexec_fn=pin)
+    if r.returncode != 0:
+        raise SystemExit(f"bench/trainer.py: {name} run failed:\n{r.stderr[-2000:]}")
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    learning = [row for row in rows if row["updates"] > 0]
+    if len(learning) < 2:
+        raise SystemExit(
+            f"bench/trainer.py: {name}: fewer than 2 log rows after learning started; raise --seconds"
+        )
+    a, b = learning[0], learning[-1]
+    dt = b["wall_s"] - a["wall_s"]
+    steps, updates = b["env_steps"] - a["env_steps"], b["updates"] - a["updates"]
+    return {
+        "command": " ".join(cmd[2:]),
+        "window_s": dt,
+        "env_steps": steps,
+        "updates": updates,
+        "env_steps_per_hour": steps / dt * 3600,
+        "updates_per_hour": updates / dt * 3600,
+        "updates_per_env_step": updates / steps,
+        "total_wall_s": time.perf_counter() - t0,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=180.0, help="wall-clock budget of each run")
+    ap.add_argument("--goals", default="6d", help="goal mode of the runs (default: the 6D task)")
+    ap.add_argument("--objects", default="train", help="object set of the runs")
+    ap.add_argument("--log-every", type=int, default=200, help="env steps between metric rows")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra TOML line")
+    ap.add_argument("--json", type=Path, help="write the results here")
+    args = ap.parse_args()
+
+    results: dict = {}
+    with tempfile.TemporaryDirectory(prefix="hydo-bench-trainer-") as tmp:
+        for name in LAYOUTS:
+            results[name] = run_loop(name, args, Path(tmp))
+    d, s = results["default"], results["serial"]
+    results["env_steps_speedup"] = d["env_steps_per_hour"] / s["env_steps_per_hour"]
+    results["updates_speedup"] = d["updates_per_hour"] / s["updates_per_hour"]
+    results["meta"] = {
+        "seconds": args.seconds,
+        "goals": args.goals,
+        "objects": args.objects,
+        "set": args.set,
+        "cpus": os.cpu_count(),
+        "platform": platform.platform(),
+    }
+
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"training loop, {args.goals} goals, {args.seconds:.0f} s per layout")
+    for col in ("layout", "env steps/h", "updates/h", "updates/env step", "window s"):
+        table.add_column(col, justify="right")
+    for name in LAYOUTS:
+        r = results[name]
+        table.add_row(
+            name,
+            f"{r['env_steps_per_hour']:,.0f}",
+            f"{r['updates_per_hour']:,.0f}",
+            f"{r['updates_per_env_step']:.3f}",
+            f"{r['window_s']:.0f}",
+        )
+    table.add_row(
+        "speedup", f"{results['env_steps_speedup']:.2f}×", f"{results['updates_speedup']:.2f}×", "", ""
+    )
+    Console().print(table)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(args.json, json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()
