@@ -22,39 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-
-def load_run(run: Path) -> dict:
-    cfg = json.loads((run / "config.json").read_text())
-    rows = [json.loads(line) for line in (run / "eval.jsonl").read_text().splitlines() if line.strip()]
-    return {"run": str(run), "config": cfg, "evals": rows}
-
-
-def minutes_curve(runs: list[dict], step: float) -> list[dict]:
-    """Success vs wall-clock minutes: at each multiple of ``step`` minutes (up to the longest run),
-    every seed's latest evaluation at or before it (seeds that had none yet are left out)."""
-    longest = max((e["wall_s"] for r in runs for e in r["evals"]), default=0.0) / 60
-    rows = []
-    for k in range(1, int(np.ceil(longest / step - 1e-9)) + 1):
-        mark = min(k * step, longest)
-        at = [
-            [e for e in r["evals"] if e["wall_s"] / 60 <= mark + 1e-6][-1]
-            for r in runs
-            if any(e["wall_s"] / 60 <= mark + 1e-6 for e in r["evals"])
-        ]
-        if not at:
-            continue
-        sr = np.array([e["success_rate"] for e in at])
-        rows.append(
-            {
-                "minutes": mark,
-                "env_steps_mean": float(np.mean([e["env_steps"] for e in at])),
-                "success_mean": float(sr.mean()),
-                "success_min": float(sr.min()),
-                "success_max": float(sr.max()),
-                "seeds": len(at),
-            }
-        )
-    return rows
+from hydo_cli.figures import load_run, minutes_curve, steps_curve  # noqa: E402
 
 
 def main() -> None:
@@ -85,36 +53,21 @@ def main() -> None:
     for (algo, goals, objects, variant), runs in sorted(groups.items()):
         if variant:
             algo = f"{algo}[{variant}]"
-        steps = sorted({e["env_steps"] for r in runs for e in r["evals"]})
         table = Table(title=f"{algo}  {goals} goals  objects={objects}  ({len(runs)} seeds)")
         for col in ("env steps", "minutes (mean)", "success mean", "min", "max", "episodes/eval"):
             table.add_column(col, justify="right")
-        curve = []
-        for s in steps:
-            at = [e for r in runs for e in r["evals"] if e["env_steps"] == s]
-            sr = np.array([e["success_rate"] for e in at])
-            minutes = float(np.mean([e["wall_s"] for e in at]) / 60)
-            curve.append(
-                {
-                    "env_steps": s,
-                    "minutes": minutes,
-                    "success_mean": float(sr.mean()),
-                    "success_min": float(sr.min()),
-                    "success_max": float(sr.max()),
-                    "seeds": len(at),
-                    "episodes": int(at[0]["episodes"]),
-                }
-            )
+        curve = steps_curve(runs)
+        for row in curve:
             table.add_row(
-                str(s),
-                f"{minutes:.1f}",
-                f"{sr.mean():.0%}",
-                f"{sr.min():.0%}",
-                f"{sr.max():.0%}",
-                str(at[0]["episodes"]),
+                str(row["env_steps"]),
+                f"{row['minutes_mean']:.1f}",
+                f"{row['success_mean']:.0%}",
+                f"{row['success_min']:.0%}",
+                f"{row['success_max']:.0%}",
+                str(row["episodes"]),
             )
         console.print(table)
-        by_minutes = minutes_curve(runs, args.minute_step)
+        by_minutes = minutes_curve(runs, step=args.minute_step)
         table = Table(title=f"{algo}  {goals} goals  objects={objects}: success vs wall-clock minutes")
         for col in ("minutes", "env steps (mean)", "success mean", "min", "max", "seeds"):
             table.add_column(col, justify="right")

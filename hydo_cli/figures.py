@@ -105,18 +105,24 @@ def steps_curve(runs: Sequence[dict]) -> list[dict]:
                 "success_min": float(sr.min()),
                 "success_max": float(sr.max()),
                 "seeds": len(at),
+                "episodes": int(at[0].get("episodes", 0)),
             }
         )
     return rows
 
 
-def minutes_curve(runs: Sequence[dict], points: int = MINUTES_GRID) -> list[dict]:
-    """Success vs wall-clock minutes: at each of ``points`` marks up to the longest run, every seed's
-    latest evaluation at or before it (seeds with none yet are left out), as ``bench/curves.py`` does."""
+def minutes_curve(runs: Sequence[dict], points: int = MINUTES_GRID, step: float | None = None) -> list[dict]:
+    """Success vs wall-clock minutes: at each of ``points`` marks up to the longest run (or at every
+    multiple of ``step`` minutes), every seed's latest evaluation at or before it (seeds with none yet
+    are left out)."""
     longest = max(e["wall_s"] for r in runs for e in r["evals"]) / 60
     first = min(e["wall_s"] for r in runs for e in r["evals"]) / 60
+    if step is not None:
+        marks = [min(k * step, longest) for k in range(1, int(np.ceil(longest / step - 1e-9)) + 1)]
+    else:
+        marks = np.linspace(first, longest, points) if longest > first else [longest]
     rows = []
-    for mark in np.linspace(first, longest, points) if longest > first else [longest]:
+    for mark in marks:
         at = [[e for e in r["evals"] if e["wall_s"] / 60 <= mark + 1e-9] for r in runs]
         at = [a[-1] for a in at if a]
         if not at:
@@ -125,6 +131,7 @@ def minutes_curve(runs: Sequence[dict], points: int = MINUTES_GRID) -> list[dict
         rows.append(
             {
                 "minutes": float(mark),
+                "env_steps_mean": float(np.mean([e["env_steps"] for e in at])),
                 "success_mean": float(sr.mean()),
                 "success_min": float(sr.min()),
                 "success_max": float(sr.max()),

@@ -12,7 +12,15 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("hydo_cli", "models", "sim", "robot")
 CONTRACT = {"sim.contract", "sim.primitive", "sim.atomic"}
 FEASIBILITY = ("feasible_points", "feasibility_mask", "within_walls", "start_clear", "plans_inside")
-COMMANDS = {"hydo_cli.train", "hydo_cli.evaluate", "hydo_cli.export", "hydo_cli.deploy"}
+COMMANDS = {
+    "hydo_cli.train",
+    "hydo_cli.evaluate",
+    "hydo_cli.export",
+    "hydo_cli.deploy",
+    "hydo_cli.plot",
+    "hydo_cli.sweep",
+    "hydo_cli.review",
+}
 
 
 def module_name(path: Path) -> str:
