@@ -214,6 +214,8 @@ class Trainer:
                     ),
                     "wall_s": torch.tensor(self.wall_s, dtype=torch.float64),
                     "workers": self.world,
+                    # every shard's (pos, full): they grow in lock-step
+                    "replay_at": (self.buffer.pos, self.buffer.full),
                     **self._rng_state(),
                 },
             )
@@ -238,6 +240,8 @@ class Trainer:
         self.rng.bit_generator.state = json.loads(state["np_rng"])
         if replay.exists():
             self.buffer = load_replay(replay, self.cfg.n_obj, self.cfg.n_bg)
+            # the shard was saved just before the checkpoint: a cut in between leaves it ahead
+            self.buffer.rewind(*ckpt.get("replay_at", (self.buffer.pos, self.buffer.full)))
         elif not fresh_replay:
             raise HydoError(
                 f"{replay} is missing: resuming would train on an empty replay buffer. "
@@ -517,6 +521,7 @@ def read_worker_state(path: Path) -> dict:
 def _worker_main(cfg: dict, run_dir: str, resume: bool, rank: int, address: str, fresh_replay: bool) -> None:
     """Entry point of worker ``rank`` > 0 (a spawned process): same loop, no logs or evaluation."""
     group = None
+    _die_with_parent()
     try:
         trainer = Trainer(
             TrainConfig(**cfg), Path(run_dir), resume=resume, rank=rank, fresh_replay=fresh_replay
@@ -530,6 +535,22 @@ def _worker_main(cfg: dict, run_dir: str, resume: bool, rank: int, address: str,
     finally:
         if group is not None:
             group.close()
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGKILL this worker when worker 0 dies, so an orphan never writes its shard into a
+    folder that a resumed run is already using."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    try:
+        ctypes.CDLL("libc.so.6").prctl(pr_set_pdeathsig, signal.SIGKILL)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() == 1:  # worker 0 died before the call above
+        os._exit(1)
 
 
 def _watch_workers(workers: list, done: threading.Event) -> None:

@@ -229,6 +229,19 @@ class ReplayBuffer:
         self.full = self.full or self.pos + e >= self.capacity
         self.pos = int((self.pos + e) % self.capacity)
 
+    def rewind(self, pos: int, full: bool) -> None:
+        """Back to the state a checkpoint recorded (``pos``, ``full``): forget what was added after it,
+        and end every episode in flight (a resumed run restarts them, so no hindsight goal links an
+        episode to the next one). A shard saved just after its checkpoint is at most one checkpoint
+        interval ahead; its extra slots stay in memory but are never linked again."""
+        ahead = (self.pos - pos) % self.capacity if (self.full or self.pos >= pos) else 0
+        dropped = (pos + np.arange(ahead)) % self.capacity
+        if len(dropped):
+            self.next_slot[dropped] = -1
+            self.next_slot[np.isin(self.next_slot, dropped)] = -1
+        self.pos, self.full = int(pos), bool(full)
+        self._last_slot.clear()
+
     def sample(self, batch_size: int, relabel_future: float = 0.0) -> ReplayBatch:
         """Uniformly sample ``batch_size`` stored transitions (with replacement across calls).
 

@@ -243,3 +243,21 @@ def test_normals_are_stored_for_both_observations():
     assert batch.normals.shape == (5, 4, 3) and batch.next_normals.dtype == torch.float32
     with pytest.raises(ValueError, match="`normals` must have shape"):
         buf.add(Transition(**transition(rng), normals=np.zeros((5, 3))))
+
+
+def test_rewind_forgets_what_came_after_the_checkpoint_and_ends_episodes():
+    """A shard saved just before a checkpoint write that never happened is ahead of the checkpoint:
+    rewinding drops those transitions and every link into them, and ends the episodes in flight."""
+    rng = np.random.default_rng(10)
+    local = rng.uniform(-0.03, 0.03, (8, 3))
+    ep, _ = _episode(rng, local, 4, _pose(rng))
+    buf = ReplayBuffer(16, 8, 4, seed=0)
+    buf.add(Transition(**ep[0]))
+    buf.add(Transition(**ep[1]))
+    at = (buf.pos, buf.full)
+    buf.add(Transition(**ep[2]))  # after the checkpoint
+    assert len(buf) == 3 and buf.next_slot[1] == 2
+    buf.rewind(*at)
+    assert len(buf) == 2 and buf.next_slot[1] == -1 and buf.next_slot[0] == 1
+    buf.add(Transition(**ep[3]))  # a resumed run's first transition starts a new episode
+    assert buf.next_slot[1] == -1 and len(buf) == 3
