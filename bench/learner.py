@@ -113,6 +113,26 @@ def time_updates(agent: HybridAgent, buf: ReplayBuffer, batch_size: int, seconds
     return max(rates), statistics.median(rates), sample_ms
 
 
+def compile_agent(agent: HybridAgent, buf: ReplayBuffer, batch_size: int) -> float:
+    """``torch.compile`` every network the update runs (the optimisers keep the same parameters);
+    returns the seconds the first updates took (compilation, for each policy-delay branch)."""
+    methods = {
+        "encoder": ("encode_context", "head", "forward"),
+        "encoder_target": ("forward",),
+        "critic": ("forward", "q1"),
+        "critic_target": ("forward",),
+        "motion_policy": ("sample",),
+    }
+    for name, names in methods.items():
+        module = getattr(agent, name)
+        for method in names:
+            setattr(module, method, torch.compile(getattr(module, method), dynamic=False))
+    t0 = time.perf_counter()
+    for _ in range(4):
+        agent.update(buf.sample(batch_size))
+    return time.perf_counter() - t0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--algos", default=",".join(ALGOS), help="comma-separated --algo values")
@@ -120,6 +140,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=5.0, help="timing budget per (algo, batch size)")
     ap.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
     ap.add_argument("--bf16", action="store_true", help="run updates under bf16 autocast")
+    ap.add_argument(
+        "--compile",
+        action="store_true",
+        help="wrap the encoder, critic and motion policy (online and target) in torch.compile; the "
+        "first updates (compilation) are excluded from the timing and reported as compile_s",
+    )
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="AgentConfig override")
     ap.add_argument("--json", type=Path, help="write results to this JSON file")
     args = ap.parse_args(argv)
@@ -134,6 +160,9 @@ def main(argv: list[str] | None = None) -> int:
         agent = HybridAgent(cfg)
         buf = ReplayBuffer(2000, cfg.n_obj, cfg.n_bg, seed=0)
         fill_buffer(buf, 256, np.random.default_rng(0))
+        compile_s = None
+        if args.compile:
+            compile_s = compile_agent(agent, buf, batch_sizes[0])
         for bs in batch_sizes:
             ups, ups_median, sample_ms = time_updates(agent, buf, bs, args.seconds, args.bf16)
             key = algo if len(batch_sizes) == 1 else f"{algo}@{bs}"
@@ -147,6 +176,7 @@ def main(argv: list[str] | None = None) -> int:
                 "sample_ms": round(sample_ms, 3),
                 "n_obj": cfg.n_obj,
                 "n_bg": cfg.n_bg,
+                "compile_s": compile_s,
             }
             rows.append(results[key])
             print(
@@ -160,6 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         "threads": torch.get_num_threads(),
         "malloc_retain": cpu["malloc_retain"],
         "bf16": args.bf16,
+        "compile": args.compile,
         "overrides": overrides,
         "machine": platform.processor() or platform.machine(),
         "cpu_capability": torch.backends.cpu.get_cpu_capability(),

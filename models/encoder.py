@@ -18,7 +18,8 @@ Architecture (H = ``hidden``, G = ``global_dim``, D = ``out_dim``)::
 With ``normals=True`` the object points' outward unit normals (the observation's ``normals``, which
 the primitive approaches along) enter each point's input. What a push at a point does depends on the
 surface there, and a PointNet cannot estimate a normal from one point. With them the 60-minute planar
-runs reach 78–82 % instead of 62–68 % (README, ``configs/experiments/normals-dirs16.toml``).
+runs reached 78–82 % instead of 62–68 % (docs/results.md), so ``AgentConfig.encoder_normals`` is on
+by default.
 
 Only object points get output features: every head (location, motion, critic) is evaluated on
 object points only, so background points contribute through the global feature alone and the head
