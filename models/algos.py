@@ -57,7 +57,6 @@ from models.motion import (
 )
 from models.replay import ReplayBatch
 
-
 AGENT_FORMAT = "hydo-agent/1"
 #: Options that measurements showed do not help (docs/experiments.md), with the value that made them
 #: inert. A checkpoint that recorded them at that value loads as before; any other value is refused.

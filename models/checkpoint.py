@@ -67,23 +67,6 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     return data["payload"]
 
 
-#: Arrays every ``replay.npz`` holds (``ReplayBuffer.save``); the pose and normal arrays are optional
-#: (older replays lack them, and ``ReplayBuffer.load`` leaves them zero).
-REPLAY_REQUIRED = (
-    "meta",
-    "rng",
-    "points",
-    "features",
-    "index",
-    "motion",
-    "reward",
-    "next_points",
-    "next_features",
-    "terminated",
-    "truncated",
-)
-
-
 def load_replay(path: str | os.PathLike, n_obj: int, n_bg: int):
     """``ReplayBuffer.load`` behind a check of the file against the buffer's own layout.
 
@@ -98,7 +81,7 @@ def load_replay(path: str | os.PathLike, n_obj: int, n_bg: int):
 
     import numpy as np
 
-    from models.replay import ReplayBuffer
+    from models.replay import REQUIRED_ARRAYS, ReplayBuffer
 
     path = Path(path)
 
@@ -116,7 +99,7 @@ def load_replay(path: str | os.PathLike, n_obj: int, n_bg: int):
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
         what = "empty file (0 bytes)" if path.stat().st_size == 0 else "truncated or not an .npz archive"
         raise bad(f"{what} ({type(e).__name__})") from None
-    missing = [k for k in REPLAY_REQUIRED if k not in arrays]
+    missing = [k for k in REQUIRED_ARRAYS if k not in arrays]
     if missing:
         raise bad(f"lacks {missing} (not a hydo replay?)")
     meta = arrays["meta"]

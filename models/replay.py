@@ -89,6 +89,29 @@ def _available_memory_bytes() -> int | None:
         return None
 
 
+#: Arrays ``ReplayBuffer.save`` writes beside ``meta`` and ``rng``; the first nine are in every
+#: replay.npz, the normal and pose arrays only in those written since they were added (older replays
+#: load with them zero).
+SAVED_ARRAYS = (
+    "points",
+    "features",
+    "index",
+    "motion",
+    "reward",
+    "next_points",
+    "next_features",
+    "terminated",
+    "truncated",
+    "normals",
+    "next_normals",
+    "goal_T",
+    "achieved_T",
+    "has_poses",
+    "next_slot",
+)
+REQUIRED_ARRAYS = ("meta", "rng", *SAVED_ARRAYS[:9])
+
+
 class ReplayBuffer:
     """Fixed-capacity FIFO of transitions at ``N = n_obj + n_bg`` points.
 
@@ -334,23 +357,7 @@ class ReplayBuffer:
         cols["reward"][rows] = -distance
         cols["terminated"][rows] = distance < self.success_threshold
 
-    _ARRAYS = (
-        "points",
-        "features",
-        "index",
-        "motion",
-        "reward",
-        "next_points",
-        "next_features",
-        "terminated",
-        "truncated",
-        "normals",
-        "next_normals",
-        "goal_T",
-        "achieved_T",
-        "has_poses",
-        "next_slot",
-    )
+    _ARRAYS = SAVED_ARRAYS
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the stored transitions and the RNG state to ``path`` (``.npz``), atomically."""

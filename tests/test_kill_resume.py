@@ -20,8 +20,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.tiny_run import TINY_AGENT_TOML
+
 ROOT = Path(__file__).resolve().parents[1]
-TINY = """
+TINY = (
+    """
 objects = "cube"
 goals = "planar"
 steps = {steps}
@@ -35,13 +38,9 @@ eval_every = 64
 eval_episodes = 2
 checkpoint_every = 8
 log_every = 8
-[agent]
-feature_dim = 16
-encoder_hidden = 16
-encoder_global = 16
-actor_hidden = 16
-critic_hidden = 16
 """
+    + TINY_AGENT_TOML
+)
 STEPS = 400
 KILLS = 20
 

@@ -14,10 +14,12 @@ from typer.testing import CliRunner
 
 from hydo_cli.main import app
 from tests.test_cli import hydo
+from tests.tiny_run import TINY_AGENT_TOML
 
 runner = CliRunner()
 #: A tiny learner and scene (as tests/test_train.py): a trial of a few hundred env steps in seconds.
-TINY = """
+TINY = (
+    """
 objects = "cube"
 goals = "planar"
 steps = 200
@@ -30,13 +32,9 @@ eval_every = 100
 eval_episodes = 2
 checkpoint_every = 25
 log_every = 25
-[agent]
-feature_dim = 16
-encoder_hidden = 16
-encoder_global = 16
-actor_hidden = 16
-critic_hidden = 16
 """
+    + TINY_AGENT_TOML
+)
 RUN_FILES = ("config.json", "command.txt", "metrics.jsonl", "eval.jsonl", "checkpoint.pt", "replay.npz")
 
 

@@ -4,8 +4,10 @@ usable by `hydo eval` and `hydo export`."""
 import json
 
 from tests.test_cli import hydo
+from tests.tiny_run import TINY_AGENT_TOML
 
-TINY = """
+TINY = (
+    """
 objects = "cube"
 goals = "planar"
 steps = 48
@@ -19,13 +21,9 @@ eval_episodes = 2
 checkpoint_every = 24
 log_every = 8
 threads = 1
-[agent]
-feature_dim = 16
-encoder_hidden = 16
-encoder_global = 16
-actor_hidden = 16
-critic_hidden = 16
 """
+    + TINY_AGENT_TOML
+)
 
 
 def _lines(path):
