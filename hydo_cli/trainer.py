@@ -36,7 +36,7 @@ from hydo_cli.policies import agent_policy
 from hydo_cli.rollout import run_episodes, summarize
 from models.algos import AgentConfig, HybridAgent
 from models.checkpoint import CheckpointError, load_checkpoint, load_replay, save_checkpoint
-from models.distributed import WorkerGroup, free_local_address
+from models.distributed import GroupSpec, WorkerGroup, make_group
 from models.perf import configure_cpu
 from models.replay import ReplayBuffer, Transition
 from sim.atomic import atomic_write_text
@@ -279,13 +279,13 @@ class Trainer:
             return
         if self.resumed:
             self.check_resumable(fresh_replay)
-        address = free_local_address()
+        spec = make_group(self.world, self.agent.num_parameters() + 2, 2 + 2 * len(self.envs))
         ctx = multiprocessing.get_context("spawn")
         cfg = dataclasses.asdict(self.cfg)
         workers = [
             ctx.Process(
                 target=_worker_main,
-                args=(cfg, str(self.run_dir), self.resumed, rank, address, fresh_replay),
+                args=(cfg, str(self.run_dir), self.resumed, rank, spec, fresh_replay),
                 daemon=True,
                 name=f"hydo-worker-{rank}",
             )
@@ -295,13 +295,14 @@ class Trainer:
             w.start()
         done = threading.Event()
         threading.Thread(target=_watch_workers, args=(workers, done), daemon=True).start()
+        self.group = WorkerGroup(0, spec)
         try:
-            self.group = WorkerGroup(0, self.world, address)
             self._train()
+        except BaseException:
+            self.group.abort()  # the other workers stop at their next collective
+            raise
         finally:
             done.set()
-            if self.group is not None:
-                self.group.close()
             for w in workers:
                 w.join(timeout=60)
 
@@ -518,23 +519,23 @@ def read_worker_state(path: Path) -> dict:
     return state
 
 
-def _worker_main(cfg: dict, run_dir: str, resume: bool, rank: int, address: str, fresh_replay: bool) -> None:
+def _worker_main(
+    cfg: dict, run_dir: str, resume: bool, rank: int, spec: GroupSpec, fresh_replay: bool
+) -> None:
     """Entry point of worker ``rank`` > 0 (a spawned process): same loop, no logs or evaluation."""
-    group = None
     _die_with_parent()
+    group = WorkerGroup(rank, spec)
     try:
         trainer = Trainer(
             TrainConfig(**cfg), Path(run_dir), resume=resume, rank=rank, fresh_replay=fresh_replay
         )
-        trainer.group = group = WorkerGroup(rank, trainer.world, address)
+        trainer.group = group
         trainer._train()
     except BaseException:
+        group.abort()
         traceback.print_exc()
         sys.stderr.flush()
         os._exit(1)
-    finally:
-        if group is not None:
-            group.close()
 
 
 def _die_with_parent() -> None:

@@ -430,13 +430,17 @@ class HybridAgent:
         self.sync_gradients: Callable[[list[torch.Tensor]], None] | None = None
 
     # ------------------------------------------------------------------ helpers
-    def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
-        """zero_grad → backward → (gradient sync across data-parallel workers) → step."""
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+    def _step(self, *steps: tuple[torch.optim.Optimizer, torch.Tensor]) -> None:
+        """For each ``(optimizer, loss)``: zero_grad → backward; then one gradient sync across the
+        data-parallel workers for all of them; then every step. The losses must not depend on each
+        other's parameters (actor and temperature losses do not: the latter read detached values)."""
+        for optimizer, loss in steps:
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
         if self.sync_gradients is not None:
-            self.sync_gradients([p for g in optimizer.param_groups for p in g["params"]])
-        optimizer.step()
+            self.sync_gradients([p for opt, _ in steps for g in opt.param_groups for p in g["params"]])
+        for optimizer, _ in steps:
+            optimizer.step()
 
     def _randn(self, *shape: int) -> torch.Tensor:
         return torch.randn(shape, generator=self.generator)
@@ -636,7 +640,7 @@ class HybridAgent:
         # 3. Critic loss on the executed (index, motion); trains encoder + critic.
         q_taken = self.critic(f_taken, batch.motion)  # (B, 2)
         critic_loss = F.mse_loss(q_taken[:, 0], target_q) + F.mse_loss(q_taken[:, 1], target_q)
-        self._step(self.critic_optimizer, critic_loss)
+        self._step((self.critic_optimizer, critic_loss))
         out.update(critic_loss=critic_loss.item(), q=q_taken.mean().item(), target_q=target_q.mean().item())
 
         if actor_step:
@@ -657,8 +661,7 @@ class HybridAgent:
                         f_sub, noise_s[rows[:, None], pick]
                     )  # (B, m, 3)
                     q_sub = self._actor_q(f_sub, a_sub)  # (B, m)
-                    surrogate = (coef * q_sub + alpha_m * logp_sub).mean(-1).mean()
-                self._step(self.actor_optimizer, surrogate)
+                    actor_loss = (coef * q_sub + alpha_m * logp_sub).mean(-1).mean()  # the surrogate
                 out["actor_loss"] = weights.loss.mean().item()
             else:
                 with frozen(self.critic):
@@ -667,11 +670,12 @@ class HybridAgent:
                     pi, log_pi = location_policy(q, alpha_loc)  # (B, N_obj)
                     j = -q + alpha_loc * log_pi + alpha_m * logp if self.is_sac else -q  # (B, N_obj) J_i
                     actor_loss = (pi * j).sum(-1).mean()
-                self._step(self.actor_optimizer, actor_loss)
                 out["actor_loss"] = actor_loss.item()
                 pi, log_pi, logp = pi.detach(), log_pi.detach(), logp.detach()
 
-            # 5. Temperatures (SAC): log-α losses on detached entropy estimates, as SB3 / CleanRL.
+            # 5. Temperatures (SAC): log-α losses on detached entropy estimates, as SB3 / CleanRL;
+            #    stepped together with the actor (one gradient sync for both).
+            steps = [(self.actor_optimizer, actor_loss)]
             if self.is_sac:
                 entropy_loc = -(pi * log_pi).sum(-1)  # (B,) exact location entropy
                 entropy_motion = -(pi * logp).sum(-1)  # (B,) motion entropy (estimate) where π_loc picks
@@ -680,7 +684,9 @@ class HybridAgent:
                     alpha_loss
                     + self.log_alpha_motion * (entropy_motion - cfg.resolved_target_entropy_motion).mean()
                 )
-                self._step(self.alpha_optimizer, alpha_loss)
+                steps.append((self.alpha_optimizer, alpha_loss))
+            self._step(*steps)
+            if self.is_sac:
                 out.update(
                     entropy_loc=entropy_loc.mean().item(),
                     entropy_motion=entropy_motion.mean().item(),
