@@ -87,8 +87,13 @@ def test_resume_extends_the_minutes_budget(tmp_path):
 
     run = tmp_path / "run"
     shutil.copytree(OLD_RUN, run)
+    # the fixture keeps no replay.npz (size): --resume refuses to go on with an empty buffer unless told
+    r = hydo("train", "--resume", str(run), "--minutes", "0.001", cwd=tmp_path)
+    assert r.returncode == 1 and "replay.npz is missing" in r.stderr and "Traceback" not in r.stderr
     # the old run has 120 of 120 steps and no budget: a budget of 0.001 min ends at once, recorded
-    r = hydo("train", "--resume", str(run), "--minutes", "0.001", "--threads", "1", cwd=tmp_path)
+    r = hydo(
+        "train", "--resume", str(run), "--minutes", "0.001", "--threads", "1", "--fresh-replay", cwd=tmp_path
+    )
     assert r.returncode == 0, r.stderr
     saved = json.loads((run / "config.json").read_text())
     assert saved["max_minutes"] == 0.001
