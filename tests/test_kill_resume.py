@@ -75,15 +75,25 @@ def test_twenty_sigkills_and_resumes_end_where_an_uninterrupted_run_ends(tmp_pat
 
     run = tmp_path / "killed"
     rng = np.random.default_rng(0)
-    kills, first = 0, True
-    while kills < KILLS:
+    # kill points by progress, not time (a tiny run's speed varies with the machine's load): once the
+    # log reaches each of 20 random steps, a random 0-0.3 s later (some land in a checkpoint write)
+    targets = np.sort(rng.choice(np.arange(16, STEPS - 80, 8), KILLS, replace=False))
+    kills = 0
+    for k, target in enumerate(targets):
         p = train(
-            *(["--config", str(cfg), "--seed", "5", "--out", str(run)] if first else ["--resume", str(run)])
+            *(["--config", str(cfg), "--seed", "5", "--out", str(run)] if k == 0 else ["--resume", str(run)])
         )
-        first = False
-        time.sleep(rng.uniform(2.0, 7.0))  # start-up is ~2-4 s: some kills land before any step
-        if p.poll() is not None:  # finished before the kill: the run is complete
-            break
+        deadline = time.monotonic() + 300
+        while p.poll() is None and time.monotonic() < deadline:
+            if (
+                (run / "metrics.jsonl").exists()
+                and (steps := logged_steps(run, "metrics.jsonl"))
+                and steps[-1] >= target
+            ):
+                break
+            time.sleep(0.02)
+        time.sleep(rng.uniform(0.0, 0.3))
+        assert p.poll() is None, f"the run ended before its kill at step {target}: {p.stderr.read()[-2000:]}"
         os.kill(p.pid, signal.SIGKILL)
         p.wait(timeout=60)
         kills += 1
