@@ -20,6 +20,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from hydo_cli.paths import check_writable_folder
+
 app = typer.Typer(invoke_without_command=True, no_args_is_help=False)  # help: the callback's docstring
 err = Console(stderr=True)
 out = Console()
@@ -166,6 +168,7 @@ def deploy(
         )
     if goal is not None and goal_offset is not None:
         raise typer.BadParameter("give --goal or --goal-offset, not both", param_hint="--goal-offset")
+    check_writable_folder("--log", log)
     cfg = DeployConfig(
         robot=robot.value,
         model=model,

@@ -165,3 +165,13 @@ def test_export_prints_no_exporter_warnings(tmp_path):
     assert r.returncode == 0, r.stderr
     assert r.stderr.strip() == "", r.stderr
     assert (tmp_path / "m" / "manifest.json").exists()
+
+
+def test_deploy_log_that_cannot_be_a_folder_is_refused_before_anything_runs(tmp_path):
+    blocker = tmp_path / "afile"
+    blocker.write_text("user data\n")
+    model = Path(__file__).resolve().parents[1] / "models" / "hydo-cm-planar"
+    for log in (blocker, blocker / "session"):
+        r = hydo("deploy", "--robot", "sim", "--model", str(model), "--episodes", "1", "--log", str(log))
+        assert r.returncode == 1 and "is a file" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert blocker.read_text() == "user data\n"
