@@ -20,7 +20,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from hydo_cli.paths import check_writable_folder
+from hydo_cli.paths import check_writable, check_writable_folder
 
 app = typer.Typer(invoke_without_command=True, no_args_is_help=False)  # help: the callback's docstring
 err = Console(stderr=True)
@@ -324,3 +324,120 @@ def capture_goal_cmd(
     err.print(
         f"goal cloud of {len(goal.points)} points (centre {np.round(centre, 3).tolist()} m, base frame) written to {out_path}"
     )
+
+
+@app.command("ladder")
+def ladder_cmd(
+    model: Annotated[Path, typer.Option("--model", help="Exported model folder (`hydo export`).")],
+    episodes: Annotated[int, typer.Option("--episodes", min=1, help="Episodes per rung.")] = 100,
+    seed: Annotated[
+        int, typer.Option("--seed", help="Episode seed: rung episodes are `hydo eval --seed`'s episodes.")
+    ] = 0,
+    rungs: Annotated[
+        str,
+        typer.Option(
+            "--rungs", help="Comma-separated rungs: env, env-render, twin-true, twin (default: all)."
+        ),
+    ] = "env,env-render,twin-true,twin",
+    objects: Annotated[
+        str | None, typer.Option("--objects", help="Object set (default: the model's training objects).")
+    ] = None,
+    log: Annotated[
+        Path | None,
+        typer.Option(
+            "--log", help="Folder for the twin sessions and ladder.json. Default: runs/ladder/<time>."
+        ),
+    ] = None,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Also write the ladder's JSON here.")
+    ] = None,
+    jobs: Annotated[int, typer.Option("--jobs", min=1, help="Rungs run at a time (one process each).")] = 2,
+) -> None:
+    """Where a policy's success is lost between training and the cell: the sim → twin ladder.
+
+    Runs one exported model on the same episodes on four rungs, each adding one difference: the
+    training env (mesh observations), the training env with rendered depth, the twin's full arm with
+    true-pose observations, the twin with cameras + segmentation + registration. Prints success, mean
+    final distance and failure causes per rung, and scores the deploy loop's verdict against the truth.
+
+    Examples:
+
+      hydo deploy ladder --model models/hydo-cm-planar --episodes 100 --seed 3
+
+      hydo deploy ladder --model models/hydo-cm-6d --rungs env,twin --episodes 50
+    """
+    import json
+
+    from hydo_cli.ladder import RUNGS, ladder_json, run_ladder
+    from robot.onnx_policy import OnnxPolicy
+    from sim.atomic import atomic_write_text
+
+    chosen = tuple(r.strip() for r in rungs.split(",") if r.strip())
+    bad = [r for r in chosen if r not in RUNGS]
+    if bad or not chosen:
+        raise typer.BadParameter(f"rungs are {', '.join(RUNGS)}; got {rungs!r}", param_hint="--rungs")
+    chosen = tuple(r for r in RUNGS if r in chosen)  # ladder order
+    OnnxPolicy.load(model)  # a bad model folder is one line, before any rung starts
+    folder = log if log is not None else Path("runs") / "ladder" / time.strftime("%Y%m%d-%H%M%S")
+    check_writable_folder("--log", folder)
+    check_writable("--json", json_out)
+    folder.mkdir(parents=True, exist_ok=True)
+    err.print(f"ladder: {', '.join(chosen)}; {episodes} episodes each, seed {seed}; logs in {folder}")
+    t0 = time.time()
+    try:
+        results = run_ladder(model, episodes, seed, folder, chosen, objects, jobs)
+    except KeyboardInterrupt:
+        err.print("interrupted")
+        raise typer.Exit(130) from None
+    doc = ladder_json(results, shlex.join(["hydo", *sys.argv[1:]]), model, seed)
+    doc["wall_s"] = round(time.time() - t0, 1)
+    text = json.dumps(doc, indent=2)
+    atomic_write_text(folder / "ladder.json", text)
+    if json_out is not None:
+        atomic_write_text(json_out, text)
+    t = Table(title=f"sim -> twin ladder: {model}, {episodes} episodes, seed {seed}", title_justify="left")
+    cols = ("rung", "success", "dist", "lost/won", "near", "limit", "left", "refused", "force", "reflex")
+    for col in cols:
+        t.add_column(col, justify="left" if col == "rung" else "right")
+    for s in doc["rungs"]:
+        c = s["causes"]
+        refused = sum(v for k, v in c.items() if k.endswith(("Error", "Rejected")))
+        lg = f"-{s['lost_vs_previous']}/+{s['gained_vs_previous']}" if "lost_vs_previous" in s else ""
+        t.add_row(
+            s["rung"],
+            f"{s['success_rate']:.0%}",
+            f"{s['mean_final_distance_m'] * 100:.1f} cm",
+            lg,
+            str(c.get("near_miss", 0)),
+            str(c.get("step_limit", 0)),
+            str(c.get("object_left_bin", 0)),
+            str(refused),
+            str(s["force_stops"]),
+            str(s["reflexes"] + c.get("reflex_limit", 0)),
+        )
+    out.print(t)
+    out.print(
+        "dist: mean final distance; lost/won: episodes vs the rung above; failed episodes by what ended "
+        "them: near (step limit within 3-4.5 cm), limit (step limit), left (the bin), refused (a refusal; "
+        "kinds below); force: contact-force stops; reflex: reflexes (+ episodes ended by the reflex limit)"
+    )
+    for s in doc["rungs"]:
+        kinds = {k: v for k, v in s["causes"].items() if k.endswith(("Error", "Rejected"))}
+        if kinds or s["refused_primitives"]:
+            out.print(
+                f"refusals ({s['rung']}): "
+                + ", ".join(
+                    [f"{k} {v}" for k, v in kinds.items()] + [f"refused primitives {s['refused_primitives']}"]
+                )
+            )
+    for s in doc["rungs"]:
+        v = s.get("verdict")
+        if v:
+            agree = "n/a" if v["agreement"] is None else f"{v['agreement']:.0%}"
+            out.print(
+                f"deploy verdict ({s['rung']}): reports {v['reported_success_rate']:.0%} success; agrees with "
+                f"the true pose on {agree} of decided episodes; {v['ambiguous']} ambiguous; "
+                f"{v['false_success']} false successes ({v['false_success_symmetric']} symmetric poses), "
+                f"{v['false_failure']} false failures"
+            )
+    err.print(f"ladder.json written to {folder}")

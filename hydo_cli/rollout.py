@@ -13,6 +13,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from sim.goals import episode_seed
+
 Policy = Callable[[list[dict[str, np.ndarray]]], list[tuple[int, np.ndarray]]]
 
 
@@ -29,10 +31,6 @@ class EpisodeResult:
 
     def as_dict(self) -> dict:
         return asdict(self)
-
-
-def episode_seed(seed: int, i: int) -> int:
-    return seed * 1_000_003 + i
 
 
 def run_episodes(

@@ -9,7 +9,8 @@ warm-up decision. Per step::
     frames  = cameras, fresh (newer than the last motion), arm at home        CameraError
     seg     = perception.segment(frames, background)                          PerceptionError
     reg     = registration.register(seg.obj_points, goal.points)              RegistrationError
-    success = reg.distance < 3 cm                                              (episode ends)
+    success = reg.distance < 3 cm for every equally good registration          (episode ends)
+              (one of a symmetric pose that is not: "ambiguous", never a success)
     obs     = build_observation(..., T_goal = reg.T)  ->  gate.check_observation
     action  = policy.act(obs)                         ->  gate.check_action   InputError
     plan    = gate.plan_primitive(point, normal, motion)                      PrimitiveRejected,
@@ -54,17 +55,20 @@ from robot.errors import (
 )
 from robot.executor import Outcome
 from robot.onnx_policy import OnnxPolicy
-from robot.perception import Background, capture_background, observation, segment
+from robot.perception import Background, Segmented, capture_background, observation, segment
 from robot.recovery import handle_failure
-from robot.registration import Goal, check_registration, goal_from_offset, register
+from robot.registration import Goal, Registration, check_registration, goal_from_offset, register
 from robot.report import EpisodeResult, SessionResult, StepRecord
 from robot.safety import RecoveryBudget, SafetyGate, check_realtime
 from robot.session_log import SessionLog
-from robot.twin_metrics import mask_iou_vs_truth, registration_error, true_distance
+from robot.twin_metrics import mask_iou_vs_truth, registration_add, registration_error, true_distance
 from sim.contract import MAX_PRIMITIVES, SUCCESS_THRESHOLD_M
+from sim.goals import episode_seed
+from sim.observe import bin_background_points, visible_surface
 from sim.primitive import PrimitiveRejected, feasibility_mask
 
 ROBOTS = ("panda", "fr3", "sim")
+PERCEPTIONS = ("cameras", "true")
 #: Refusals: bad input that stops nothing physical. Robot and camera failures are never refusals.
 REFUSALS = (PerceptionError, RegistrationError, InputError, PrimitiveRejected, UnreachableError)
 RECAPTURE_WAIT_S = 0.5
@@ -91,6 +95,10 @@ class DeployConfig:
     replay: Path | None = None  # play a recorded session's frames back (implies --dry-run)
     objects: str | None = None  # twin only: object set (default: the model's training objects)
     speed_scale: float = 1.0  # in (0, 1]: every command slower than the cell's speeds by this factor
+    # "cameras": depth cameras, segmentation and registration; "true" (twin only): the object's true
+    # pose and mesh instead, observed as in training (``sim.observe``), so that what remains between
+    # the training env and the twin is the arm and its controller (``hydo deploy ladder``)
+    perception: str = "cameras"
     command: str = ""
 
     def resolved_on_refusal(self) -> str:
@@ -158,6 +166,18 @@ class Deployment:
         """Load and check every file before any device opens; create the session folder."""
         if cfg.robot not in ROBOTS:
             raise ValueError(f"`--robot` must be one of {list(ROBOTS)}. Got {cfg.robot!r}.")
+        if cfg.perception not in PERCEPTIONS:
+            raise ValueError(f"`perception` must be one of {list(PERCEPTIONS)}. Got {cfg.perception!r}.")
+        if cfg.perception == "true" and (
+            cfg.robot != "sim"
+            or cfg.replay is not None
+            or cfg.goal is not None
+            or cfg.goal_offset is not None
+        ):
+            raise InputError(
+                "true-pose perception exists only in the twin with its sampled goals "
+                "(--robot sim, no --goal, --goal-offset or --replay)"
+            )
         cell = load_cell(cfg.cell)
         policy = OnnxPolicy.load(cfg.model)
         goal = Goal.load(cfg.goal) if cfg.goal is not None else None
@@ -320,6 +340,7 @@ class Deployment:
         goal = self.goal
         self.log.event("episode_start", episode=ep, object=obj_name)
         last_distance = None
+        last_verdict = "failure"
         primitives = 0
         for step in range(cfg.max_steps + 1):
             self.budget.new_primitive()
@@ -328,15 +349,21 @@ class Deployment:
             try:
                 frames = self._capture(cameras, robot)
                 t0 = time.perf_counter()
-                seg = segment(frames, self.background, self.cell, self.rng)
+                if cfg.perception == "true":
+                    seg, reg = self._true_perception()
+                else:
+                    seg = segment(frames, self.background, self.cell, self.rng)
                 t_perc = time.perf_counter() - t0
-                if goal is None:  # --goal-offset: the goal is the first cloud of the episode, moved
+                if (
+                    goal is None and cfg.perception != "true"
+                ):  # --goal-offset: the goal is the first cloud of the episode, moved
                     goal = goal_from_offset(seg.obj_points, *cfg.goal_offset)
                     # before any motion of the episode: a goal outside the bin stops the run
                     check_goal(self.cell, goal.points, f"--goal-offset {_offset_text(cfg.goal_offset)}")
                     goal.save(self.log.folder / "goals" / f"e{ep:03d}.npz")
                     self.log.event("goal_from_offset", episode=ep, offset=list(cfg.goal_offset))
-                reg = register(seg.obj_points, goal.points, self.goal_mode, seed=cfg.seed + step)
+                if cfg.perception != "true":
+                    reg = register(seg.obj_points, goal.points, self.goal_mode, seed=cfg.seed + step)
                 rec = StepRecord(
                     ep,
                     step,
@@ -365,10 +392,13 @@ class Deployment:
                     self.cell.perception.registration_min_inliers,
                 )
                 last_distance = reg.distance
-                if reg.distance < SUCCESS_THRESHOLD_M or step == cfg.max_steps:
+                # "ambiguous": the best registration is within 3 cm, an equally good one (a symmetric
+                # pose) is not: the episode ends, and is reported as ambiguous, never as a success
+                last_verdict = reg.verdict(SUCCESS_THRESHOLD_M)
+                if last_verdict != "failure" or step == cfg.max_steps:
                     self._save_step(ep, step, frames, seg, None, None, None, reg)
                     saved = True
-                    rec.outcome = "success" if reg.distance < SUCCESS_THRESHOLD_M else "step_limit"
+                    rec.outcome = last_verdict if last_verdict != "failure" else "step_limit"
                     rec.seconds = time.perf_counter() - t_step
                     self.result.steps.append(rec)
                     break
@@ -421,7 +451,9 @@ class Deployment:
                 if self.cfg.resolved_on_refusal() == "stop":
                     raise
                 self.print(f"episode {ep}: step {step} refused ({e.__class__.__name__}): {e}")
-                return self._end_episode(ep, False, primitives, last_distance, f"refused: {e}", obj_name)
+                return self._end_episode(
+                    ep, False, primitives, last_distance, f"refused: {e}", obj_name, e.__class__.__name__
+                )
             if self.on_plan is not None:
                 self.on_plan(ep, step, plan)
             if robot is None:  # --dry-run / --replay: the plan was checked and printed; nothing moves
@@ -452,7 +484,7 @@ class Deployment:
                     self.result.steps.append(rec)
                     self.result.reflex_limit_episodes += 1
                     return self._end_episode(
-                        ep, False, primitives, last_distance, f"reflex limit: {e}", obj_name
+                        ep, False, primitives, last_distance, f"reflex limit: {e}", obj_name, "reflex_limit"
                     )
             if self.world is not None:
                 self.world.settle_object()
@@ -460,15 +492,26 @@ class Deployment:
             self.result.steps.append(rec)
             if self.world is not None and not self.world.object_in_bin():
                 return self._end_episode(
-                    ep, False, primitives, last_distance, "object left the bin", obj_name
+                    ep, False, primitives, last_distance, "object left the bin", obj_name, "object_left_bin"
                 )
-        success = last_distance is not None and last_distance < SUCCESS_THRESHOLD_M
+        success = last_verdict == "success"
+        reason = {
+            "success": "",
+            "ambiguous": "ambiguous: within 3 cm of the goal up to the object's symmetry "
+            "(an equally good registration is not)",
+        }.get(last_verdict, "step limit")
         return self._end_episode(
-            ep, success, primitives, last_distance, "" if success else "step limit", obj_name
+            ep,
+            success,
+            primitives,
+            last_distance,
+            reason,
+            obj_name,
+            last_verdict if last_verdict != "failure" else "step_limit",
         )
 
-    def _end_episode(self, ep, success, steps, distance, reason, obj_name) -> EpisodeResult:
-        res = EpisodeResult(ep, bool(success), steps, distance, reason, obj_name)
+    def _end_episode(self, ep, success, steps, distance, reason, obj_name, cause) -> EpisodeResult:
+        res = EpisodeResult(ep, bool(success), steps, distance, reason, obj_name, cause=cause)
         if self.world is not None and self._true_goal_T is not None:
             d = true_distance(self.world, self._true_goal_T)
             res.true_distance, res.true_success = d, bool(d < SUCCESS_THRESHOLD_M)
@@ -529,7 +572,9 @@ class Deployment:
         from robot.twin import sample_episode
 
         w = self.world
-        asset, start, goal_pose = sample_episode(w, assets, self.goal_mode, self.rng)
+        # episode ``ep`` of seed s is ``hydo eval --seed s``'s episode ``ep`` (same object, start, goal)
+        episode_rng = np.random.default_rng(episode_seed(self.cfg.seed, ep))
+        asset, start, goal_pose = sample_episode(w, assets, self.goal_mode, episode_rng)
         if w.asset is not asset:
             w.load(asset)
             self.gate = SafetyGate(self.cell, w.kin)
@@ -539,7 +584,10 @@ class Deployment:
             w.set_object_pose(*goal_pose)
             w.settle_object()
             self._true_goal_T = w.object_T()
-            seg = segment(cameras.capture(), self.background, self.cell, self.rng)
+            if self.cfg.perception == "true":
+                seg, _ = self._true_perception()  # (T_goal is known: the cloud is only logged)
+            else:
+                seg = segment(cameras.capture(), self.background, self.cell, self.rng)
             self.goal = Goal(seg.obj_points.copy(), "captured", None, time.time())
             self.goal.save(self.log.folder / "goals" / f"e{ep:03d}.npz")
         elif self.cfg.goal_offset is not None:
@@ -555,6 +603,30 @@ class Deployment:
         )
         return asset.name
 
+    def _true_perception(self) -> tuple[Segmented, Registration]:
+        """Twin only (``perception="true"``): the training env's observation of the true scene.
+
+        The object's visible mesh-surface samples at its true pose and the bin's background grid
+        (``sim.observe``, in the bin frame, moved to the cell's bin), and the exact transform to the
+        true goal pose in place of a registration (zero residual, distance = the true distance)."""
+        w = self.world
+        T_obj = w.object_T()
+        to_bin = np.eye(4)
+        to_bin[:3, 3] = -self.cell.bin_center
+        p, n = visible_surface(w.asset.surface_points, w.asset.surface_normals, to_bin @ T_obj)
+        offset = self.cell.bin_center.astype(np.float32)
+        masks = [w.true_mask(i) for i in range(len(self.cell.cameras))]
+        seg = Segmented(
+            (p + offset).astype(np.float32),
+            n.astype(np.float32),
+            bin_background_points() + offset,
+            masks,
+            [0.0] * len(masks),
+        )
+        T_goal = self._true_goal_T if self._true_goal_T is not None else T_obj
+        d = true_distance(w, T_goal)
+        return seg, Registration(T_goal @ np.linalg.inv(T_obj), 0.0, 1.0, d, 0.0)
+
     def _twin_metrics(self, rec: StepRecord, seg, reg) -> None:
         """Twin only: the step's mask IoU, registration error and true distance (``robot.twin_metrics``)."""
         w = self.world
@@ -563,4 +635,5 @@ class Deployment:
         rec.iou = mask_iou_vs_truth(w, seg.masks)
         if self._true_goal_T is not None:
             rec.registration_error = registration_error(w, reg.T, self._true_goal_T)
+            rec.registration_add = registration_add(w, reg.T, self._true_goal_T)
             rec.true_distance = true_distance(w, self._true_goal_T)

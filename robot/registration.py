@@ -12,11 +12,20 @@ current object cloud onto the goal cloud (``goal.npz``, recorded by ``hydo deplo
 2. trimmed point-to-point ICP (Kabsch) from the best few, keeping the closest 80% of
    correspondences (the two clouds are partial views of different sides);
 3. residuals: RMS of inlier distances (< 1 cm) and the inlier fraction. A poor registration is
-   refused (``RegistrationError`` with its residuals); there is no approximate fallback.
+   refused (``RegistrationError`` with its residuals); there is no approximate fallback;
+4. ambiguity: the ICP starts are distinct rotations (at least ``DISTINCT_START_DEG`` apart), and every
+   other solution that fits about as well as the best (trimmed RMS within ``AMBIGUOUS_RMS`` × best +
+   ``AMBIGUOUS_SLACK_M``) but moves the object differently (mean over the points by more than
+   ``AMBIGUOUS_DISTINCT_M``) is kept as an alternative: a symmetric or nearly symmetric object (a
+   box turned 180°, a mug whose handle is hidden) matches its goal cloud in more than one pose, and
+   the clouds alone cannot say which one the goal meant. :meth:`Registration.verdict` calls a
+   success only when the best and every alternative are within the threshold, ``ambiguous`` when
+   only some are.
 
 The measured distance to the goal is ``mean ‖T p − p‖`` over the current object points: the reward's
 quantity, so success is the same 3 cm threshold as in training. Symmetric objects register to any
-of their symmetric poses (the flow then points to the nearest one).
+of their symmetric poses (the flow then points to the best-fitting one; the others are reported as
+alternatives).
 """
 
 from __future__ import annotations
@@ -40,7 +49,11 @@ ICP_ITERS = 30
 COARSE_POINTS = 96  # source points scored per candidate rotation
 MAX_SOURCE_POINTS = 400
 MAX_TARGET_POINTS = 3000
-REFINE_CANDIDATES = 4
+REFINE_CANDIDATES = 6  # ICP starts: the best-scoring coarse rotations ...
+DISTINCT_START_DEG = 25.0  # ... at least this far apart (so that distinct solutions are found)
+AMBIGUOUS_RMS = 1.25
+AMBIGUOUS_SLACK_M = 0.0005
+AMBIGUOUS_DISTINCT_M = 0.015
 GOAL_FORMAT = "hydo-goal/1"
 GOAL_KINDS = ("captured", "offset")  # Goal.kind: the object placed at the goal | the start cloud moved
 
@@ -54,6 +67,19 @@ class Registration:
     inlier_fraction: float  # of current object points with a goal point within INLIER_M
     distance: float  # m, mean ‖T p − p‖ over the current object points (the reward's quantity)
     seconds: float
+    # distances (m) of other solutions that fit about as well but move the object differently
+    alternatives: tuple[float, ...] = ()
+
+    @property
+    def ambiguous(self) -> bool:
+        return bool(self.alternatives)
+
+    def verdict(self, threshold: float) -> str:
+        """Over the best solution and its equally good alternatives: ``success`` (every one is within
+        ``threshold``), ``failure`` (none is) or ``ambiguous`` (some are; of a symmetric object, the
+        clouds cannot say whether it is at the goal or at a symmetric twin of it)."""
+        within = [d < threshold for d in (self.distance, *self.alternatives)]
+        return "success" if all(within) else "ambiguous" if any(within) else "failure"
 
     def to_json(self) -> dict:
         return {
@@ -61,6 +87,7 @@ class Registration:
             "rmse_m": round(self.rmse, 6),
             "inlier_fraction": round(self.inlier_fraction, 4),
             "distance_m": round(self.distance, 6),
+            "alternative_distances_m": [round(a, 6) for a in self.alternatives],
             "seconds": round(self.seconds, 4),
         }
 
@@ -153,21 +180,45 @@ def register(source: np.ndarray, target: np.ndarray, mode: str = "6d", seed: int
     x = np.einsum("cij,mj->cmi", Rs, coarse) + ct  # (C, m, 3)
     d, _ = tree.query(x.reshape(-1, 3))
     d = np.sort(d.reshape(len(Rs), -1), axis=1)[:, : int(TRIM * coarse.shape[0])]
-    order = np.argsort(d.mean(1))[:REFINE_CANDIDATES]
-    best_T, best_rms = None, np.inf
-    for c in order:
+    solutions = []  # (trimmed RMS, T) of ICP from each distinct start
+    for c in _distinct_starts(Rs, d.mean(1)):
         T0 = np.eye(4)
         T0[:3, :3] = Rs[c]
         T0[:3, 3] = ct - Rs[c] @ cs
         T, rms = _icp(src, tgt, tree, T0)
-        if rms < best_rms:
-            best_T, best_rms = T, rms
+        solutions.append((rms, T))
+    solutions.sort(key=lambda s: s[0])
+    best_rms, best_T = solutions[0]
     moved = transform_points(best_T, source)
     d_all, _ = tree.query(moved)
     inl = d_all < INLIER_M
     rmse = float(np.sqrt(np.mean(d_all[inl] ** 2))) if inl.any() else np.inf
     distance = float(np.linalg.norm(moved - source, axis=1).mean())
-    return Registration(best_T, rmse, float(inl.mean()), distance, time.perf_counter() - t0)
+    alternatives: list[np.ndarray] = []  # distinct equally good solutions, as moved source points
+    for rms, T in solutions[1:]:
+        if rms > AMBIGUOUS_RMS * best_rms + AMBIGUOUS_SLACK_M:
+            break
+        other = transform_points(T, source)
+        if all(
+            np.linalg.norm(other - m, axis=1).mean() > AMBIGUOUS_DISTINCT_M for m in (moved, *alternatives)
+        ):
+            alternatives.append(other)
+    alt = tuple(float(np.linalg.norm(m - source, axis=1).mean()) for m in alternatives)
+    return Registration(best_T, rmse, float(inl.mean()), distance, time.perf_counter() - t0, alt)
+
+
+def _distinct_starts(Rs: np.ndarray, score: np.ndarray) -> list[int]:
+    """Up to ``REFINE_CANDIDATES`` indices of the best-scoring (lowest) rotations ``Rs (C, 3, 3)``,
+    each at least ``DISTINCT_START_DEG`` from those already taken."""
+    cos_min = np.cos(np.deg2rad(DISTINCT_START_DEG))
+    taken: list[int] = []
+    for c in np.argsort(score):
+        # rotation angle between R_c and R_t: cos θ = (tr(R_c R_tᵀ) − 1) / 2
+        if all((np.trace(Rs[c] @ Rs[t].T) - 1) / 2 < cos_min for t in taken):
+            taken.append(int(c))
+            if len(taken) == REFINE_CANDIDATES:
+                break
+    return taken
 
 
 def adds_error(T_est: np.ndarray, T_true: np.ndarray, points: np.ndarray) -> float:

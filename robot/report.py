@@ -32,6 +32,7 @@ class StepRecord:
     execution_s: float = 0.0
     iou: float | None = None  # twin: mask IoU vs ground truth (pooled over cameras)
     registration_error: float | None = None  # twin: ADD-S (m) of the estimated vs true transform
+    registration_add: float | None = None  # twin: ADD (m), symmetric poses counted as errors
     true_distance: float | None = None  # twin: mean goal flow from the true poses (training's)
 
 
@@ -45,6 +46,9 @@ class EpisodeResult:
     object: str = ""
     true_success: bool | None = None  # twin: from the true poses
     true_distance: float | None = None
+    # how it ended: "success" | "step_limit" | "object_left_bin" | "reflex_limit" (twin) | the class
+    # name of the refusal that ended it (PerceptionError, RegistrationError, PrimitiveRejected, ...)
+    cause: str = ""
 
 
 @dataclass
@@ -84,6 +88,8 @@ class SessionResult:
             "force_stops": self.force_stops,
             "reflexes": self.reflexes,
             "reflex_limit_episodes": self.reflex_limit_episodes,
+            # within 3 cm up to the object's symmetry: neither a success nor a failure
+            "ambiguous_episodes": sum(e.cause == "ambiguous" for e in eps),
         }
 
 
@@ -101,6 +107,8 @@ def summary_lines(res: SessionResult) -> list[tuple[str, str]]:
         ("episodes", str(s["episodes"])),
         ("success rate (registration)", pct(s["success_rate"])),
     ]
+    if s["ambiguous_episodes"]:
+        rows.append(("ambiguous (symmetric pose, not counted)", str(s["ambiguous_episodes"])))
     if s["true_success_rate"] is not None:
         rows.append(("success rate (twin, true poses)", pct(s["true_success_rate"])))
     rows.append(("primitives", str(s["primitives"])))

@@ -4,7 +4,8 @@ A real arm knows the object's pose only through registration; the twin (``robot.
 also knows the true one. Per step: :func:`mask_iou_vs_truth` (the background-subtraction masks vs
 MuJoCo's segmentation, pooled over the cameras) and :func:`registration_error` (ADD-S of the
 estimated current-to-goal transform vs the true one); per step and episode: :func:`true_distance`
-(training's mean goal flow, from the true poses: the twin's true success).
+(training's mean goal flow, from the true poses: the twin's true success); per step
+:func:`registration_add` (ADD, which tells symmetric poses apart).
 """
 
 from __future__ import annotations
@@ -28,6 +29,18 @@ def true_distance(world, T_goal: np.ndarray) -> float:
     surf = transform_points(T_obj, world.asset.surface_points)
     flow = transform_points(T_goal @ np.linalg.inv(T_obj), surf) - surf
     return float(np.linalg.norm(flow, axis=1).mean())
+
+
+def registration_add(world, T_estimated: np.ndarray, T_goal: np.ndarray) -> float:
+    """ADD (m): mean ``‖T_est·p − T_true·p‖`` over the object's surface samples at its true pose.
+
+    Unlike ADD-S it tells symmetric poses apart: ADD-S ≈ 0 with a large ADD is a registration that
+    picked a symmetric twin of the goal (a flow towards the wrong one of equal-looking poses)."""
+    T_obj = world.object_T()
+    T_true = T_goal @ np.linalg.inv(T_obj)
+    surf = transform_points(T_obj, world.asset.surface_points)
+    diff = transform_points(T_estimated, surf) - transform_points(T_true, surf)
+    return float(np.linalg.norm(diff, axis=1).mean())
 
 
 def registration_error(world, T_estimated: np.ndarray, T_goal: np.ndarray) -> float:

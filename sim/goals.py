@@ -207,6 +207,13 @@ def sample_start_and_goal(
     return (pos, quat), (gpos, gquat)
 
 
+def episode_seed(seed: int, i: int) -> int:
+    """The seed of episode ``i`` of an evaluation with seed ``seed``: ``hydo eval`` resets its env with
+    it and ``hydo deploy --robot sim`` draws its twin episode from it, so both face the same objects,
+    start poses and goals."""
+    return seed * 1_000_003 + i
+
+
 def sample_episode(assets, goal_mode: str, rng: np.random.Generator, poses: dict | None = None):
     """:func:`sample_object`, then :func:`sample_start_and_goal`: ``(asset, start, goal)``, bin frame.
 

@@ -1,0 +1,264 @@
+"""The sim → twin ladder (``hydo deploy ladder``): where an exported policy's success is lost.
+
+One model runs the same episodes (``sim.goals.episode_seed``: same object, start and goal) on four
+rungs, each adding one difference between training and the robot cell:
+
+=============  ===============================================================================
+``env``        the training env: floating hand teleported to ``p + 0.04·n``, mesh observations
+``env-render`` the training env with rendered depth, background subtraction and PCA normals
+``twin-true``  the twin of the cell (``robot.twin``): the full arm and its impedance controller,
+               force stop and reflexes, observed through the true pose and mesh (as in training)
+``twin``       the twin with the full deploy pipeline: cameras, segmentation, registration
+=============  ===============================================================================
+
+Per rung: success by the true poses, mean final distance (the reward's mean goal flow), and what
+ended the failed episodes (``near_miss``: the step limit with the object within 3-4.5 cm; the step
+limit further away; the object leaving the bin; refusals by kind; the twin's reflex limit), with
+refused primitives, force stops and reflexes. Against the previous rung: episodes lost and gained.
+The ``twin`` rung also scores the deploy loop's own verdict (``robot.loop``, from registration)
+against the truth: agreement, false successes (of which symmetric-pose confusions: ADD-S under 1 cm
+with ADD over 2 cm), false failures and ambiguous verdicts.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+
+RUNGS = {
+    "env": "training env: floating hand, mesh observations",
+    "env-render": "training env: rendered depth + PCA normals",
+    "twin-true": "twin: full arm, true pose and mesh",
+    "twin": "twin: full arm, cameras + segmentation + registration",
+}
+NEAR_MISS_M = 0.045  # a step-limit episode that ended within 3-4.5 cm of the goal is a near miss
+SYMMETRIC_ADDS_M = 0.01  # registration to a symmetric pose: ADD-S under this ...
+SYMMETRIC_ADD_M = 0.02  # ... with ADD over this
+
+
+@dataclass
+class LadderEpisode:
+    object: str
+    success: bool  # by the true poses (the training env's own verdict, the twin's true one)
+    final_distance: float  # m, mean goal flow of the surface samples at the end (true poses)
+    steps: int  # primitives
+    cause: str  # "success" | "near_miss" | "step_limit" | "object_left_bin" | "reflex_limit" | refusal
+    reported: str | None = (
+        None  # twin with cameras: the deploy loop's verdict (success | failure | ambiguous)
+    )
+    symmetric: bool = False  # twin with cameras: its last registration picked a symmetric pose
+
+
+@dataclass
+class RungResult:
+    rung: str
+    description: str
+    episodes: list[LadderEpisode]
+    refused_primitives: int = 0  # training env: primitives refused (scene unchanged, episode goes on)
+    force_stops: int = 0
+    reflexes: int = 0
+    mean_registration_adds_m: float | None = None
+    seconds: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        eps = self.episodes
+        out = {
+            "rung": self.rung,
+            "description": self.description,
+            "episodes": len(eps),
+            "success_rate": float(np.mean([e.success for e in eps])) if eps else 0.0,
+            "mean_final_distance_m": float(np.mean([e.final_distance for e in eps])) if eps else 0.0,
+            "causes": dict(sorted(Counter(e.cause for e in eps if not e.success).items())),
+            "refused_primitives": self.refused_primitives,
+            "force_stops": self.force_stops,
+            "reflexes": self.reflexes,
+            "seconds": round(self.seconds, 1),
+        }
+        reported = [e for e in eps if e.reported is not None]
+        if reported:
+            decided = [e for e in reported if e.reported != "ambiguous"]
+            agree = [e for e in decided if (e.reported == "success") == e.success]
+            false_success = [e for e in decided if e.reported == "success" and not e.success]
+            out["verdict"] = {
+                "reported_success_rate": float(np.mean([e.reported == "success" for e in reported])),
+                "agreement": len(agree) / len(decided) if decided else None,
+                "ambiguous": sum(e.reported == "ambiguous" for e in reported),
+                "false_success": len(false_success),
+                "false_success_symmetric": sum(e.symmetric for e in false_success),
+                "false_failure": sum(e.reported == "failure" and e.success for e in decided),
+                "mean_registration_adds_m": self.mean_registration_adds_m,
+            }
+        out.update(self.extra)
+        return out
+
+
+def _cause_from_distance(cause: str, success: bool, distance: float) -> str:
+    if success:
+        return "success"
+    if cause in ("timeout", "step_limit", "success"):  # "success": reported, not true (twin verdicts)
+        return "near_miss" if distance < NEAR_MISS_M else "step_limit"
+    return cause
+
+
+def run_env_rung(rung: str, model: Path, n: int, seed: int, objects: str, goals: str) -> RungResult:
+    """``env`` / ``env-render``: the training env (``hydo eval``'s episodes) with the ONNX policy."""
+    from hydo_cli.envs import make_envs
+    from hydo_cli.policies import load_onnx_policy
+    from hydo_cli.rollout import run_episodes
+
+    t0 = time.perf_counter()
+    loaded = load_onnx_policy(model, seed)
+    obs = "render" if rung == "env-render" else "mesh"
+    envs = make_envs(objects, goals, 0, obs, 1, loaded.n_obj, loaded.n_bg)
+    try:
+        results = run_episodes(envs, loaded.policy, n, seed)
+    finally:
+        for e in envs:
+            e.close()
+    eps = [
+        LadderEpisode(
+            r.object,
+            r.success,
+            r.final_distance,
+            r.steps,
+            _cause_from_distance(r.failure, r.success, r.final_distance),
+        )
+        for r in results
+    ]
+    return RungResult(
+        rung,
+        RUNGS[rung],
+        eps,
+        refused_primitives=sum(r.rejected for r in results),
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def run_twin_rung(rung: str, model: Path, n: int, seed: int, objects: str, log_dir: Path) -> RungResult:
+    """``twin-true`` / ``twin``: ``hydo deploy --robot sim`` on the same episodes (``robot.loop``)."""
+    from robot.loop import DeployConfig, Deployment
+
+    t0 = time.perf_counter()
+    cfg = DeployConfig(
+        robot="sim",
+        model=model,
+        episodes=n,
+        seed=seed,
+        log_dir=log_dir,
+        objects=objects,
+        perception="true" if rung == "twin-true" else "cameras",
+        command=f"hydo deploy ladder (rung {rung})",
+    )
+    res = Deployment.prepare(cfg).run()
+    last_step = {}
+    for s in res.steps:  # the episode's last observation: its registration decided the verdict
+        last_step[s.episode] = s
+    eps = []
+    for e in res.episodes:
+        true_success = bool(e.true_success)
+        d = float(e.true_distance) if e.true_distance is not None else float("nan")
+        reported = None
+        symmetric = False
+        if rung == "twin":
+            reported = "success" if e.success else "failure"
+            if e.cause == "ambiguous":
+                reported = "ambiguous"
+            s = last_step.get(e.episode)
+            if s is not None and s.registration_error is not None and s.registration_add is not None:
+                symmetric = s.registration_error < SYMMETRIC_ADDS_M and s.registration_add > SYMMETRIC_ADD_M
+        eps.append(
+            LadderEpisode(
+                e.object,
+                true_success,
+                d,
+                e.steps,
+                _cause_from_distance(e.cause, true_success, d),
+                reported,
+                symmetric,
+            )
+        )
+    adds = [s.registration_error for s in res.steps if s.registration_error is not None]
+    extra = {}
+    if rung == "twin":
+        extra["steps_refused_by_kind"] = dict(
+            Counter(s.outcome for s in res.steps if s.outcome.endswith(("Error", "Rejected")))
+        )
+    result = RungResult(
+        rung,
+        RUNGS[rung],
+        eps,
+        force_stops=res.force_stops,
+        reflexes=res.reflexes,
+        mean_registration_adds_m=float(np.mean(adds)) if adds and rung == "twin" else None,
+        seconds=time.perf_counter() - t0,
+        extra=extra,
+    )
+    return result
+
+
+def _run_rung(args) -> RungResult:
+    rung, model, n, seed, objects, goals, log_dir = args
+    if rung.startswith("env"):
+        return run_env_rung(rung, model, n, seed, objects, goals)
+    return run_twin_rung(rung, model, n, seed, objects, log_dir / rung)
+
+
+def run_ladder(
+    model: Path,
+    episodes: int,
+    seed: int,
+    log_dir: Path,
+    rungs: tuple[str, ...] = tuple(RUNGS),
+    objects: str | None = None,
+    jobs: int = 2,
+) -> list[RungResult]:
+    """Run ``rungs`` of the ladder for an exported ``model`` (``jobs`` rungs at a time, one process
+    each); returns them in ladder order. Twin sessions are logged under ``log_dir/<rung>``."""
+    import json
+
+    manifest = json.loads((Path(model) / "manifest.json").read_text())
+    objects = objects or str(manifest.get("objects") or "train")
+    goals = str(manifest.get("goals", "6d"))
+    tasks = [(r, Path(model), episodes, seed, objects, goals, Path(log_dir)) for r in rungs]
+    if jobs <= 1:
+        return [_run_rung(t) for t in tasks]
+    # slowest first (the twin with cameras), so the rungs finish close together
+    order = sorted(range(len(tasks)), key=lambda i: -list(RUNGS).index(tasks[i][0]))
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+        futures = {i: pool.submit(_run_rung, tasks[i]) for i in order}
+        return [futures[i].result() for i in range(len(tasks))]
+
+
+def compare_rungs(results: list[RungResult]) -> list[dict]:
+    """Per rung: its summary, with episodes lost and gained against the previous rung (same episodes)."""
+    out = []
+    prev = None
+    for r in results:
+        s = r.summary()
+        if prev is not None and len(prev.episodes) == len(r.episodes):
+            s["lost_vs_previous"] = sum(
+                a.success and not b.success for a, b in zip(prev.episodes, r.episodes, strict=True)
+            )
+            s["gained_vs_previous"] = sum(
+                b.success and not a.success for a, b in zip(prev.episodes, r.episodes, strict=True)
+            )
+        out.append(s)
+        prev = r
+    return out
+
+
+def ladder_json(results: list[RungResult], command: str, model: Path, seed: int) -> dict:
+    return {
+        "command": command,
+        "model": str(model),
+        "seed": seed,
+        "rungs": compare_rungs(results),
+        "episodes": {r.rung: [asdict(e) for e in r.episodes] for r in results},
+    }

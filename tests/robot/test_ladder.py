@@ -1,0 +1,169 @@
+"""The sim → twin ladder and what it rests on: twin episodes that are ``hydo eval``'s episodes, the
+twin's true-pose perception, registrations that say when a symmetric object makes them ambiguous,
+and a deploy verdict that never counts an ambiguous registration as a success."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from robot.errors import InputError
+from robot.loop import DeployConfig, Deployment
+from robot.registration import Registration, register
+from robot.session_log import read_log
+from sim.contract import SUCCESS_THRESHOLD_M, pose_matrix, transform_points
+from sim.goals import episode_seed
+
+
+def box_cloud(size, spacing=0.004) -> np.ndarray:
+    """Points (N, 3) on the top and the four sides of a box of ``size`` (x, y, z) resting on z = 0."""
+    sx, sy, sz = size
+    xs, ys, zs = (np.arange(-s / 2, s / 2 + 1e-9, spacing) for s in (sx, sy, sz))
+    zs = zs + sz / 2
+    top = np.stack(np.meshgrid(xs, ys, [sz], indexing="ij"), -1).reshape(-1, 3)
+    sides = [np.stack(np.meshgrid([x], ys, zs, indexing="ij"), -1).reshape(-1, 3) for x in (-sx / 2, sx / 2)]
+    sides += [np.stack(np.meshgrid(xs, [y], zs, indexing="ij"), -1).reshape(-1, 3) for y in (-sy / 2, sy / 2)]
+    return np.concatenate([top, *sides])
+
+
+def moved(points, dx, yaw=0.0):
+    T = pose_matrix(np.array([dx, 0.0, 0.0]), np.array([np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]))
+    return transform_points(T, points)
+
+
+def test_registration_of_a_symmetric_object_near_its_goal_is_ambiguous():
+    """A 6 x 6 cm cube 1.5 cm from its goal fits it turned by 90, 180 and 270 degrees as well: the best
+    registration to the nearest of them is within 3 cm, the others are not, so the verdict is ``ambiguous``. An object with
+    no symmetry (a box with a block on one end) at the same offset is an unambiguous success."""
+    rng = np.random.default_rng(0)
+    cube = box_cloud((0.06, 0.06, 0.06))
+    reg = register(moved(cube, 0.015) + rng.normal(0, 0.0005, cube.shape), cube, "planar")
+    distances = (reg.distance, *reg.alternatives)  # the best fit is any of the four: it is a cube
+    assert reg.ambiguous and min(distances) < SUCCESS_THRESHOLD_M < max(distances)
+    assert reg.verdict(SUCCESS_THRESHOLD_M) == "ambiguous"
+
+    shape = np.concatenate([box_cloud((0.12, 0.05, 0.03)), box_cloud((0.03, 0.05, 0.03)) + [0.045, 0, 0.03]])
+    reg = register(moved(shape, 0.015, 0.1) + rng.normal(0, 0.0005, shape.shape), shape, "planar")
+    assert reg.verdict(SUCCESS_THRESHOLD_M) == "success" and not reg.ambiguous
+    # the verdict over the best and its alternatives: all within, some, none
+    verdict = [
+        Registration(np.eye(4), 0.001, 1.0, d, 0.0, alt).verdict(SUCCESS_THRESHOLD_M)
+        for d, alt in ((0.01, (0.02,)), (0.05, (0.01,)), (0.05, (0.04,)), (0.05, ()))
+    ]
+    assert verdict == ["success", "ambiguous", "failure", "failure"]
+
+
+def test_an_ambiguous_registration_ends_the_episode_and_is_not_a_success(tiny_model, tmp_path, monkeypatch):
+    """The deploy loop reports it as ambiguous (summary and table), sends no motion for it."""
+    from robot import loop
+    from robot.report import summary_lines
+
+    real_register = loop.register
+
+    def ambiguous(source, target, mode="6d", seed=0):
+        reg = real_register(source, target, mode, seed)
+        return Registration(reg.T, reg.rmse, reg.inlier_fraction, 0.01, reg.seconds, (0.06,))
+
+    monkeypatch.setattr(loop, "register", ambiguous)
+    dep = Deployment.prepare(DeployConfig(robot="sim", model=tiny_model, episodes=1, log_dir=tmp_path / "s"))
+    res = dep.run()
+    (ep,) = res.episodes
+    assert not ep.success and ep.cause == "ambiguous" and ep.steps == 0 and res.commands_sent == 0
+    assert res.summary()["ambiguous_episodes"] == 1 and res.summary()["success_rate"] == 0.0
+    assert ("ambiguous (symmetric pose, not counted)", "1") in summary_lines(res)
+
+
+def test_true_perception_observes_the_twin_like_the_training_env(tiny_model, tmp_path):
+    """``perception="true"``: the exact transform to the true goal (ADD-S 0, IoU 1), the true distance
+    as the loop's distance, so the loop's verdict is the true one; twin episode ``i`` of seed ``s``
+    is ``hydo eval --seed s``'s episode ``i`` (same object, start and goal, in the cell's bin)."""
+    from sim.env import BinEnv
+
+    dep = Deployment.prepare(
+        DeployConfig(
+            robot="sim",
+            model=tiny_model,
+            episodes=2,
+            max_steps=2,
+            seed=5,
+            perception="true",
+            log_dir=tmp_path / "s",
+        )
+    )
+    res = dep.run()
+    s = res.summary()
+    assert s["mean_iou"] == pytest.approx(1.0) and s["mean_registration_error_m"] == pytest.approx(
+        0.0, abs=1e-9
+    )
+    for e in res.episodes:
+        assert e.success == e.true_success and e.distance == pytest.approx(e.true_distance, abs=1e-6)
+    env = BinEnv(objects="cube", goals="planar")
+    starts = [e for e in read_log(tmp_path / "s") if e["event"] == "twin_episode"]
+    for i, logged in enumerate(starts):
+        env.reset(seed=episode_seed(5, i))
+        goal = np.array(logged["goal"])[:3, 3] - dep.cell.bin_center
+        assert np.linalg.norm(goal - env.goal_pose[0]) < 0.005  # the same goal, settled in the twin
+    env.close()
+
+
+def test_true_perception_exists_only_in_the_twin(tiny_model, tmp_path):
+    with pytest.raises(InputError, match="only in the twin"):
+        Deployment.prepare(
+            DeployConfig(
+                robot="panda",
+                model=tiny_model,
+                perception="true",
+                goal_offset=(0.1, 0, 0),
+                log_dir=tmp_path / "a",
+            )
+        )
+    with pytest.raises(ValueError, match="perception"):
+        Deployment.prepare(
+            DeployConfig(robot="sim", model=tiny_model, perception="oracle", log_dir=tmp_path / "b")
+        )
+
+
+def test_ladder_command_runs_the_same_episodes_on_each_rung(tiny_model, tmp_path):
+    """``hydo deploy ladder``: a table, ladder.json with each rung's success, causes and the episodes
+    lost and gained against the rung above, on the same objects in the same order."""
+    from typer.testing import CliRunner
+
+    from hydo_cli.main import app
+
+    out = tmp_path / "ladder"
+    r = CliRunner().invoke(
+        app,
+        [
+            "deploy",
+            "ladder",
+            "--model",
+            str(tiny_model),
+            "--episodes",
+            "2",
+            "--rungs",
+            "twin-true,env",
+            "--jobs",
+            "1",
+            "--log",
+            str(out),
+            "--json",
+            str(tmp_path / "l.json"),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    assert "sim -> twin ladder" in r.output
+    doc = json.loads((out / "ladder.json").read_text())
+    assert doc == json.loads((tmp_path / "l.json").read_text())
+    env, twin = doc["rungs"]
+    assert (env["rung"], twin["rung"]) == ("env", "twin-true")  # ladder order, whatever was asked
+    assert env["episodes"] == twin["episodes"] == 2 and "lost_vs_previous" in twin
+    for rung in doc["rungs"]:
+        failed = sum(not e["success"] for e in doc["episodes"][rung["rung"]])
+        assert sum(rung["causes"].values()) == failed
+    objects = [[e["object"] for e in doc["episodes"][k]] for k in ("env", "twin-true")]
+    assert objects[0] == objects[1]
+
+    bad = CliRunner().invoke(app, ["deploy", "ladder", "--model", str(tiny_model), "--rungs", "sim"])
+    assert bad.exit_code == 2 and "rungs are env, env-render, twin-true, twin" in bad.output
