@@ -435,11 +435,17 @@ def load_cell(path: str | Path | None = None, reach: bool = True) -> Cell:
 
 
 def reach_points(cell: Cell) -> np.ndarray:
-    """(8, 3) fingertip targets every plan may need: the workspace's x/y corners at the lowest push
-    height (floor + clearance) and at the transit height."""
-    lo, hi = cell.workspace.low, cell.workspace.high
-    zs = (cell.floor_z + FLOOR_CLEARANCE_M, cell.approach_z)
-    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in zs])
+    """(27, 3) fingertip targets every plan may need: a 3 x 3 grid over the workspace's x/y (corners,
+    edge midpoints, centre) at the lowest push height (floor + clearance), halfway up and at the
+    transit height. The corners alone missed the worst place: with the bin 0.50 m in front of a
+    Panda's base, a push at the middle of the near wall needs joint 4 within 0.05 rad of its limit
+    (the arm folds back over itself) while all eight corners pass, and the twin refused such plans
+    mid-episode."""
+    lo, hi = np.array(cell.workspace.low), np.array(cell.workspace.high)
+    floor = cell.floor_z + FLOOR_CLEARANCE_M
+    zs = (floor, (floor + cell.approach_z) / 2, cell.approach_z)
+    xs, ys = np.linspace(lo[0], hi[0], 3), np.linspace(lo[1], hi[1], 3)
+    return np.array([[x, y, z] for x in xs for y in ys for z in zs])
 
 
 def check_reach(cell: Cell) -> None:

@@ -61,7 +61,13 @@ from robot.registration import Goal, Registration, check_registration, goal_from
 from robot.report import EpisodeResult, SessionResult, StepRecord
 from robot.safety import RecoveryBudget, SafetyGate, check_realtime
 from robot.session_log import SessionLog
-from robot.twin_metrics import mask_iou_vs_truth, registration_add, registration_error, true_distance
+from robot.twin_metrics import (
+    mask_iou_vs_truth,
+    nearest_true_goal,
+    registration_add,
+    registration_error,
+    true_distance,
+)
 from sim.contract import MAX_PRIMITIVES, SUCCESS_THRESHOLD_M
 from sim.goals import episode_seed
 from sim.observe import bin_background_points, visible_surface
@@ -623,7 +629,7 @@ class Deployment:
             masks,
             [0.0] * len(masks),
         )
-        T_goal = self._true_goal_T if self._true_goal_T is not None else T_obj
+        T_goal = nearest_true_goal(w, self._true_goal_T if self._true_goal_T is not None else T_obj)
         d = true_distance(w, T_goal)
         return seg, Registration(T_goal @ np.linalg.inv(T_obj), 0.0, 1.0, d, 0.0)
 

@@ -13,19 +13,20 @@ current object cloud onto the goal cloud (``goal.npz``, recorded by ``hydo deplo
    correspondences (the two clouds are partial views of different sides);
 3. residuals: RMS of inlier distances (< 1 cm) and the inlier fraction. A poor registration is
    refused (``RegistrationError`` with its residuals); there is no approximate fallback;
-4. ambiguity: the ICP starts are distinct rotations (at least ``DISTINCT_START_DEG`` apart), and every
-   other solution that fits about as well as the best (trimmed RMS within ``AMBIGUOUS_RMS`` × best +
-   ``AMBIGUOUS_SLACK_M``) but moves the object differently (mean over the points by more than
-   ``AMBIGUOUS_DISTINCT_M``) is kept as an alternative: a symmetric or nearly symmetric object (a
+4. ambiguity: the ICP starts are distinct rotations (at least ``DISTINCT_START_DEG`` apart); every
+   solution that fits about as well as the best (trimmed RMS within ``AMBIGUOUS_RMS`` × best +
+   ``AMBIGUOUS_SLACK_M``) is a candidate; the nearest candidate (least motion) is the registration,
+   and those moving the object differently from it (mean over the points by more than
+   ``AMBIGUOUS_DISTINCT_M``) are kept as alternatives: a symmetric or nearly symmetric object (a
    box turned 180°, a mug whose handle is hidden) matches its goal cloud in more than one pose, and
    the clouds alone cannot say which one the goal meant. :meth:`Registration.verdict` calls a
-   success only when the best and every alternative are within the threshold, ``ambiguous`` when
+   success only when it and every alternative are within the threshold, ``ambiguous`` when
    only some are.
 
 The measured distance to the goal is ``mean ‖T p − p‖`` over the current object points: the reward's
-quantity, so success is the same 3 cm threshold as in training. Symmetric objects register to any
-of their symmetric poses (the flow then points to the best-fitting one; the others are reported as
-alternatives).
+quantity, so success is the same 3 cm threshold as in training. Symmetric objects fit their goal
+cloud in several poses: the flow points to the nearest of them, the others are reported as
+alternatives (step 4).
 """
 
 from __future__ import annotations
@@ -188,17 +189,19 @@ def register(source: np.ndarray, target: np.ndarray, mode: str = "6d", seed: int
         T, rms = _icp(src, tgt, tree, T0)
         solutions.append((rms, T))
     solutions.sort(key=lambda s: s[0])
-    best_rms, best_T = solutions[0]
-    moved = transform_points(best_T, source)
+    band = AMBIGUOUS_RMS * solutions[0][0] + AMBIGUOUS_SLACK_M
+    # Every solution that fits about as well as the best, as moved source points, nearest first: of
+    # poses the clouds cannot tell apart, the flow points to the one needing the least motion (for a
+    # planar goal, which keeps the object's yaw, that is the goal itself for a symmetric object).
+    fits = [(transform_points(T, source), T) for rms, T in solutions if rms <= band]
+    fits.sort(key=lambda f: np.linalg.norm(f[0] - source, axis=1).mean())
+    moved, best_T = fits[0]
     d_all, _ = tree.query(moved)
     inl = d_all < INLIER_M
     rmse = float(np.sqrt(np.mean(d_all[inl] ** 2))) if inl.any() else np.inf
     distance = float(np.linalg.norm(moved - source, axis=1).mean())
-    alternatives: list[np.ndarray] = []  # distinct equally good solutions, as moved source points
-    for rms, T in solutions[1:]:
-        if rms > AMBIGUOUS_RMS * best_rms + AMBIGUOUS_SLACK_M:
-            break
-        other = transform_points(T, source)
+    alternatives: list[np.ndarray] = []  # the distinct other ones
+    for other, _ in fits[1:]:
         if all(
             np.linalg.norm(other - m, axis=1).mean() > AMBIGUOUS_DISTINCT_M for m in (moved, *alternatives)
         ):

@@ -13,8 +13,9 @@ from __future__ import annotations
 import numpy as np
 
 from robot.registration import adds_error
-from sim.contract import transform_points
+from sim.contract import symmetric_goal, transform_points
 from sim.depth import mask_iou
+from sim.symmetry import probe_points, symmetries
 
 
 def mask_iou_vs_truth(world, masks: list[np.ndarray]) -> float:
@@ -23,11 +24,19 @@ def mask_iou_vs_truth(world, masks: list[np.ndarray]) -> float:
     return mask_iou(np.stack(masks), true)
 
 
+def nearest_true_goal(world, T_goal: np.ndarray) -> np.ndarray:
+    """Of the poses that look exactly like the true goal ``T_goal`` (the object's symmetries), the one
+    nearest the object's true pose: the training env's goal (``sim.contract.symmetric_goal``)."""
+    asset = world.asset
+    return symmetric_goal(world.object_T(), T_goal, probe_points(asset), symmetries(asset))
+
+
 def true_distance(world, T_goal: np.ndarray) -> float:
-    """Mean goal flow (m) of the object's surface samples from its true pose to the true goal ``T_goal``."""
+    """Mean goal flow (m) of the object's surface samples from its true pose to the true goal ``T_goal``
+    (up to the object's symmetry, as in training)."""
     T_obj = world.object_T()
     surf = transform_points(T_obj, world.asset.surface_points)
-    flow = transform_points(T_goal @ np.linalg.inv(T_obj), surf) - surf
+    flow = transform_points(nearest_true_goal(world, T_goal) @ np.linalg.inv(T_obj), surf) - surf
     return float(np.linalg.norm(flow, axis=1).mean())
 
 
@@ -37,7 +46,7 @@ def registration_add(world, T_estimated: np.ndarray, T_goal: np.ndarray) -> floa
     Unlike ADD-S it tells symmetric poses apart: ADD-S ≈ 0 with a large ADD is a registration that
     picked a symmetric twin of the goal (a flow towards the wrong one of equal-looking poses)."""
     T_obj = world.object_T()
-    T_true = T_goal @ np.linalg.inv(T_obj)
+    T_true = nearest_true_goal(world, T_goal) @ np.linalg.inv(T_obj)
     surf = transform_points(T_obj, world.asset.surface_points)
     diff = transform_points(T_estimated, surf) - transform_points(T_true, surf)
     return float(np.linalg.norm(diff, axis=1).mean())

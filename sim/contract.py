@@ -12,6 +12,11 @@ Observation (one per decision), all float32, world frame, metres::
 
 ``goal_flow = T_goal · T_obj⁻¹ · p − p`` for object points, 0 for background points.
 Reward ``r = −mean_i ‖goal_flow_i‖`` over object points; success when that mean is < 3 cm.
+
+Goals are reached up to the object's symmetry: ``T_goal`` here is :func:`symmetric_goal`'s, the one
+of the poses that look exactly like the goal pose (``T_goal · S`` for the object's symmetries ``S``,
+``sim.symmetry``) nearest to the current pose. A depth camera cannot see a cylinder's roll about its
+axis or tell a box from the box turned 180°, so neither may the task demand it.
 """
 
 from __future__ import annotations
@@ -68,6 +73,20 @@ def pose_matrix(pos: np.ndarray, quat_wxyz: np.ndarray) -> np.ndarray:
 def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Apply a (4, 4) transform to points (N, 3)."""
     return p @ T[:3, :3].T + T[:3, 3]
+
+
+def symmetric_goal(
+    T_obj: np.ndarray, T_goal: np.ndarray, points_obj: np.ndarray, symmetries: np.ndarray
+) -> np.ndarray:
+    """The goal pose (4, 4) to use: of ``T_goal · S`` for the object's ``symmetries (S, 4, 4)``
+    (object frame, identity among them), the one whose mean goal flow from ``T_obj`` is smallest,
+    measured on ``points_obj (P, 3)`` (surface samples in the object frame)."""
+    if len(symmetries) <= 1:
+        return T_goal
+    goals = T_goal[None] @ symmetries  # (S, 4, 4)
+    now = transform_points(T_obj, points_obj)  # (P, 3)
+    there = np.einsum("sij,pj->spi", goals[:, :3, :3], points_obj) + goals[:, None, :3, 3]  # (S, P, 3)
+    return goals[int(np.argmin(np.linalg.norm(there - now, axis=2).mean(1)))]
 
 
 def goal_flow(points_world: np.ndarray, T_obj: np.ndarray, T_goal: np.ndarray) -> np.ndarray:

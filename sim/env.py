@@ -10,6 +10,9 @@ Action
 Reward
     ``−mean_i ‖goal_flow_i‖`` (metres) over the object's full surface samples at the new pose;
     ``info["reward_flow"]`` holds the same term (the reward is the sum of the ``reward_*`` terms).
+    The flow goes to the nearest pose that looks exactly like the goal pose (``goal_symmetry="object"``,
+    ``sim.contract.symmetric_goal``: a cylinder's roll, a box turned 180° are not asked for);
+    ``goal_symmetry="none"``: to the goal pose itself (the task before symmetric goals).
 Episode end
     terminated on success (mean flow < 3 cm) or when the object leaves the bin; truncated after
     ``MAX_PRIMITIVES`` (10) primitives. A refused primitive (a waypoint outside the workspace, or a
@@ -19,7 +22,8 @@ Episode end
 Arguments (``gymnasium.make("hydo/Bin-v0", ...)``)
     ``objects`` (split name, object name or mesh folder), ``goals`` (``planar`` | ``6d``), ``obs``
     (``mesh`` | ``render``), ``clutter`` (0, 1, 2 or 5 extra objects in the background cloud),
-    ``n_obj``, ``n_bg`` (point counts), ``max_steps``; ``task`` (``sim.tasks``: ``push-line`` |
+    ``n_obj``, ``n_bg`` (point counts), ``max_steps``, ``goal_symmetry`` (``object`` | ``none``);
+    ``task`` (``sim.tasks``: ``push-line`` |
     ``push-align``, the behaviour-diversity variants; they fix the object, goal and obstacles) and
     ``task_start`` (``fixed``: the task's fixed start pose, for evaluation; ``random``: its training
     start region). With a task, ``info["behaviour"]`` holds the episode's behaviour id (or None) on
@@ -45,6 +49,7 @@ from sim.contract import (
     build_observation,
     pose_matrix,
     reward_and_success,
+    symmetric_goal,
     transform_points,
 )
 from sim.goals import (
@@ -58,9 +63,11 @@ from sim.objects import ObjectAsset, load_objects
 from sim.observe import MeshObserver
 from sim.primitive import SIM_WORKSPACE, PrimitiveRejected, check_plan, primitive_waypoints
 from sim.scene import BinScene
+from sim.symmetry import probe_points, symmetries
 from sim.tasks import TaskStep, get_task
 
 CLUTTER_CHOICES = (0, 1, 2, 5)
+GOAL_SYMMETRIES = ("object", "none")
 
 
 class BinEnv(gym.Env):
@@ -78,7 +85,14 @@ class BinEnv(gym.Env):
         render_mode: str | None = None,
         task: str | None = None,
         task_start: str = "fixed",
+        goal_symmetry: str = "object",
     ):
+        if goal_symmetry not in GOAL_SYMMETRIES:
+            raise ValueError(
+                f"`goal_symmetry` must be one of {list(GOAL_SYMMETRIES)}. Got {goal_symmetry!r}."
+            )
+        self.goal_symmetry = goal_symmetry
+        self._symmetries: dict[str, np.ndarray] = {}
         if goals not in GOAL_MODES:
             raise ValueError(f"`goals` must be one of {list(GOAL_MODES)}. Got {goals!r}.")
         if clutter not in CLUTTER_CHOICES:
@@ -135,17 +149,32 @@ class BinEnv(gym.Env):
             self._scenes[key] = BinScene(asset, clutter, self.task.obstacles if self.task else ())
         return self._scenes[key]
 
+    def _refresh_goal(self) -> None:
+        """The goal the flow, reward and success use: the nearest pose that looks like ``T_goal``."""
+        asset = self.scene.asset
+        if asset.name not in self._symmetries:
+            self._symmetries[asset.name] = (
+                symmetries(asset) if self.goal_symmetry == "object" else np.eye(4)[None]
+            )
+        self.T_goal_eff = symmetric_goal(
+            self.scene.object_T(),
+            self.T_goal,
+            probe_points(asset),
+            self._symmetries[asset.name],
+        )
+
     def _observe(self) -> dict[str, np.ndarray]:
         obj_p, obj_n, bg = self.observer.segmented_clouds(self.scene)
         obs = build_observation(
-            obj_p, obj_n, bg, self.scene.object_T(), self.T_goal, self.n_obj, self.n_bg, self.np_random
+            obj_p, obj_n, bg, self.scene.object_T(), self.T_goal_eff, self.n_obj, self.n_bg, self.np_random
         )
         self._obs = obs
         return obs
 
     def _evaluate(self) -> tuple[float, bool, float]:
+        """Reward, success and distance at the current pose (call ``_refresh_goal`` first)."""
         pts = transform_points(self.scene.object_T(), self.scene.asset.surface_points)
-        return reward_and_success(pts, self.scene.object_T(), self.T_goal)
+        return reward_and_success(pts, self.scene.object_T(), self.T_goal_eff)
 
     def _place_clutter(self, rng, obj_pos, obj_r) -> None:
         placed = [(obj_pos[:2], obj_r)]
@@ -187,6 +216,7 @@ class BinEnv(gym.Env):
         self.scene.settle(max_s=0.5)
         self.goal_pose = (gpos, gquat)
         self._steps = 0
+        self._refresh_goal()
         _, _, dist = self._evaluate()
         return self._observe(), {"object": asset.name, "distance": dist, "success": False}
 
@@ -200,6 +230,7 @@ class BinEnv(gym.Env):
         self._set_task_goal()
         self._steps = 0
         self._trajectory = []
+        self._refresh_goal()
         _, _, dist = self._evaluate()
         return self._observe(), {"object": self.scene.asset.name, "distance": dist, "success": False}
 
@@ -244,6 +275,7 @@ class BinEnv(gym.Env):
             )
             if self.task.goal_follows_object:
                 self._set_task_goal()
+        self._refresh_goal()
         reward, success, dist = self._evaluate()
         left_bin = not self.scene.object_in_bin()
         terminated = bool(success or left_bin)
@@ -290,6 +322,7 @@ class BinEnv(gym.Env):
         self._obs = {k: v.copy() for k, v in snapshot["obs"].items()}
         self._steps, self.goal_pose = snapshot["steps"], snapshot["goal_pose"]
         self.T_goal = snapshot["T_goal"].copy()
+        self._refresh_goal()
         self.scene.set_goal_ghost(*self.goal_pose)
         if self.task is not None:
             self._trajectory = list(snapshot["trajectory"])

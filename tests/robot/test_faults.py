@@ -161,7 +161,7 @@ def test_bumped_camera_refused_recapture_background(rig, monkeypatch):
 
 
 def test_registration_failure_refused_with_residuals(rig, monkeypatch):
-    rig.scene.box = Box(size=(0.16, 0.03, 0.03), xy=(0.5, 0.0))  # not the goal's object
+    rig.scene.box = Box(size=(0.16, 0.03, 0.03), xy=(0.54, 0.0))  # not the goal's object
     dep = rig.deployment()
     with pytest.raises(RegistrationError, match="inlier RMS .* mm .*inliers"):
         rig.run(monkeypatch, dep)
@@ -172,11 +172,11 @@ def test_registration_failure_refused_with_residuals(rig, monkeypatch):
 
 
 def test_plan_leaving_the_workspace_refused_naming_waypoint_axis_bound(rig, monkeypatch):
-    rig.scene.box = Box(xy=(0.665, 0.0))  # near the far wall; pushing outward
+    rig.scene.box = Box(xy=(0.705, 0.0))  # near the far wall; pushing outward
     dep = rig.deployment()
     push_towards_robot(dep, motion=(1.0, 0.0, 0.0))
     with pytest.raises(
-        PrimitiveRejected, match="waypoint \\d x=0\\.7\\d\\d m is above the workspace bound 0.713 m"
+        PrimitiveRejected, match="waypoint \\d x=0\\.7\\d\\d m is above the workspace bound 0.753 m"
     ):
         rig.run(monkeypatch, dep)
     assert rig.received() == []
@@ -209,7 +209,7 @@ def test_dry_run_moves_nothing_prints_plans_and_still_refuses_a_bad_plan(rig, mo
     dep.on_plan = lambda ep, step, plan: plans.append(plan)
 
     def near_wall(scene):
-        scene.box = Box(xy=(0.665, 0.0))
+        scene.box = Box(xy=(0.705, 0.0))
 
     # captures 1-2 (cameras 1-3 each): the box at the start; capture 3 (step 2): near the far wall
     script = [None, None, near_wall]

@@ -40,8 +40,9 @@ def test_registration_of_a_symmetric_object_near_its_goal_is_ambiguous():
     rng = np.random.default_rng(0)
     cube = box_cloud((0.06, 0.06, 0.06))
     reg = register(moved(cube, 0.015) + rng.normal(0, 0.0005, cube.shape), cube, "planar")
-    distances = (reg.distance, *reg.alternatives)  # the best fit is any of the four: it is a cube
-    assert reg.ambiguous and min(distances) < SUCCESS_THRESHOLD_M < max(distances)
+    # the flow points to the nearest of the four equally good fits: the 1.5 cm shift
+    assert abs(reg.distance - 0.015) < 0.003 and reg.distance < min(reg.alternatives)
+    assert reg.ambiguous and max(reg.alternatives) > SUCCESS_THRESHOLD_M
     assert reg.verdict(SUCCESS_THRESHOLD_M) == "ambiguous"
 
     shape = np.concatenate([box_cloud((0.12, 0.05, 0.03)), box_cloud((0.03, 0.05, 0.03)) + [0.045, 0, 0.03]])
@@ -76,7 +77,7 @@ def test_an_ambiguous_registration_ends_the_episode_and_is_not_a_success(tiny_mo
 
 
 def test_true_perception_observes_the_twin_like_the_training_env(tiny_model, tmp_path):
-    """``perception="true"``: the exact transform to the true goal (ADD-S 0, IoU 1), the true distance
+    """``perception="true"``: the exact transform to the true goal (IoU 1), the true distance
     as the loop's distance, so the loop's verdict is the true one; twin episode ``i`` of seed ``s``
     is ``hydo eval --seed s``'s episode ``i`` (same object, start and goal, in the cell's bin)."""
     from sim.env import BinEnv
@@ -94,9 +95,8 @@ def test_true_perception_observes_the_twin_like_the_training_env(tiny_model, tmp
     )
     res = dep.run()
     s = res.summary()
-    assert s["mean_iou"] == pytest.approx(1.0) and s["mean_registration_error_m"] == pytest.approx(
-        0.0, abs=1e-9
-    )
+    # (ADD-S against the exact goal: the nearest symmetric goal is a turn the surface maps onto itself)
+    assert s["mean_iou"] == pytest.approx(1.0) and s["mean_registration_error_m"] < 0.001
     for e in res.episodes:
         assert e.success == e.true_success and e.distance == pytest.approx(e.true_distance, abs=1e-6)
     env = BinEnv(objects="cube", goals="planar")

@@ -32,7 +32,7 @@ def world(cell):
     w.close()
 
 
-def place_cube(world, cell, xy=(0.5, 0.0)):
+def place_cube(world, cell, xy=(0.54, 0.0)):
     world.reset_arm()
     world.weld_object(False)
     world.set_object_pose(np.array([xy[0], xy[1], cell.floor_z + 0.03]), [1.0, 0, 0, 0])
@@ -95,7 +95,7 @@ def test_twin_tracks_free_space_moves_to_2_mm(world, cell):
     friction they stopped 2-7 mm short, so the fingertip did not follow the primitive's waypoints)."""
     place_cube(world, cell)
     gate = SafetyGate(cell, world.kin)
-    plan = gate.plan_primitive(np.array([0.35, -0.15, 0.05]), np.array([0, 0, 1.0]), np.zeros(3))
+    plan = gate.plan_primitive(np.array([0.39, -0.15, 0.05]), np.array([0, 0, 1.0]), np.zeros(3))
     robot = TwinExecutor(world, cell)
     with robot:
         errors = [np.linalg.norm(robot.send(c).position - c.target) for c in plan.commands]
@@ -109,7 +109,7 @@ def test_palm_on_the_bin_rim_reflex_then_checked_retract(world, cell, tmp_path):
     impact's transient and stopped again)."""
     place_cube(world, cell)
     gate = SafetyGate(cell, world.kin)
-    plan = gate.plan_primitive(np.array([0.40, -0.20, 0.06]), np.array([0, 0, 1.0]), np.zeros(3))
+    plan = gate.plan_primitive(np.array([0.44, -0.20, 0.06]), np.array([0, 0, 1.0]), np.zeros(3))
     with SessionLog(tmp_path / "s") as log, TwinExecutor(world, cell, log=log) as robot:
         result = robot.execute(plan)
         assert result.outcome is Outcome.reflex and result.failed.label in ("w1 approach", "w2 contact")
@@ -179,8 +179,27 @@ def test_twin_episodes_are_the_training_envs_in_the_cells_bin(world, cell, goals
     env.close()
 
 
-def test_unreachable_or_near_joint_limit_plans_refused(world, cell):
-    gate = SafetyGate(cell, world.kin)
+def test_a_bin_where_joint_4_hits_its_limit_is_refused_at_load_and_its_plans_by_the_gate(tmp_path):
+    """The example cell's bin sat 0.50 m in front of the base, where a push at the middle of the near
+    wall folds the arm onto joint 4's limit: the twin refused such plans mid-episode. The cell check
+    now covers a grid of the workspace and refuses that bin at load; loaded anyway (``reach=False``),
+    the gate still refuses the plan, so nothing moves."""
+    import copy
+
+    import yaml
+
+    from robot.arm import ArmKinematics
+    from robot.cell import EXAMPLE_CELL, CellError, load_cell
+
+    data = copy.deepcopy(yaml.safe_load(EXAMPLE_CELL.read_text()))
+    data["bin"]["center_m"][0] = 0.50
+    data["workspace"]["low_m"][0], data["workspace"]["high_m"][0] = 0.287, 0.713
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(CellError, match="needs joint 4 within 0.0\\d+ rad of its limit"):
+        load_cell(path)
+    old = load_cell(path, reach=False)
+    gate = SafetyGate(old, ArmKinematics.for_cell(old))
     with pytest.raises(UnreachableError, match="joint 4 within 0.0\\d+ rad of its limit"):
         gate.plan_primitive(np.array([0.30, 0.0, 0.10]), np.array([0, 0, 1.0]), np.zeros(3))
 
