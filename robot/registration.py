@@ -19,9 +19,10 @@ current object cloud onto the goal cloud (``goal.npz``, recorded by ``hydo deplo
    and those moving the object differently from it (mean over the points by more than
    ``AMBIGUOUS_DISTINCT_M``) are kept as alternatives: a symmetric or nearly symmetric object (a
    box turned 180°, a mug whose handle is hidden) matches its goal cloud in more than one pose, and
-   the clouds alone cannot say which one the goal meant. :meth:`Registration.verdict` calls a
-   success only when it and every alternative are within the threshold, ``ambiguous`` when
-   only some are.
+   the clouds alone cannot say which one the goal meant. Goals are reached up to the object's
+   symmetry (``sim.contract``), so that only matters when the views differ: :meth:`Registration.verdict`
+   calls ``ambiguous`` a registration within the threshold whose alternatives are not, when the goal
+   cloud shows surface the current cloud lacks (``goal_coverage`` under ``COVERAGE_MIN``).
 
 The measured distance to the goal is ``mean ‖T p − p‖`` over the current object points: the reward's
 quantity, so success is the same 3 cm threshold as in training. Symmetric objects fit their goal
@@ -55,6 +56,8 @@ DISTINCT_START_DEG = 25.0  # ... at least this far apart (so that distinct solut
 AMBIGUOUS_RMS = 1.25
 AMBIGUOUS_SLACK_M = 0.0005
 AMBIGUOUS_DISTINCT_M = 0.015
+COVERAGE_MIN = 0.85  # of the goal cloud within INLIER_M of the registered current cloud: the views agree
+COVERAGE_POINTS = 500
 GOAL_FORMAT = "hydo-goal/1"
 GOAL_KINDS = ("captured", "offset")  # Goal.kind: the object placed at the goal | the start cloud moved
 
@@ -70,17 +73,25 @@ class Registration:
     seconds: float
     # distances (m) of other solutions that fit about as well but move the object differently
     alternatives: tuple[float, ...] = ()
+    # fraction of the goal cloud within INLIER_M of the registered current cloud: low when the goal
+    # view shows surface the current view does not (a mug's handle hidden now, seen at the goal)
+    goal_coverage: float = 1.0
 
     @property
     def ambiguous(self) -> bool:
         return bool(self.alternatives)
 
     def verdict(self, threshold: float) -> str:
-        """Over the best solution and its equally good alternatives: ``success`` (every one is within
-        ``threshold``), ``failure`` (none is) or ``ambiguous`` (some are; of a symmetric object, the
-        clouds cannot say whether it is at the goal or at a symmetric twin of it)."""
-        within = [d < threshold for d in (self.distance, *self.alternatives)]
-        return "success" if all(within) else "ambiguous" if any(within) else "failure"
+        """``failure`` when the nearest equally good fit is ``threshold`` or further; ``success`` when it
+        is nearer and either no other fit disagrees or the goal cloud is covered (``COVERAGE_MIN``:
+        both views show the same surface, so the fits that disagree are the object's own symmetry,
+        and goals are reached up to symmetry, ``sim.contract``); else ``ambiguous``: the current view
+        lacks surface the goal view shows, and the fits disagree on whether it is at the goal."""
+        if self.distance >= threshold:
+            return "failure"
+        if self.goal_coverage >= COVERAGE_MIN or all(a < threshold for a in self.alternatives):
+            return "success"
+        return "ambiguous"
 
     def to_json(self) -> dict:
         return {
@@ -89,6 +100,7 @@ class Registration:
             "inlier_fraction": round(self.inlier_fraction, 4),
             "distance_m": round(self.distance, 6),
             "alternative_distances_m": [round(a, 6) for a in self.alternatives],
+            "goal_coverage": round(self.goal_coverage, 4),
             "seconds": round(self.seconds, 4),
         }
 
@@ -207,7 +219,9 @@ def register(source: np.ndarray, target: np.ndarray, mode: str = "6d", seed: int
         ):
             alternatives.append(other)
     alt = tuple(float(np.linalg.norm(m - source, axis=1).mean()) for m in alternatives)
-    return Registration(best_T, rmse, float(inl.mean()), distance, time.perf_counter() - t0, alt)
+    probe = _subsample(tgt, COVERAGE_POINTS, rng)
+    coverage = float((cKDTree(moved).query(probe)[0] < INLIER_M).mean())
+    return Registration(best_T, rmse, float(inl.mean()), distance, time.perf_counter() - t0, alt, coverage)
 
 
 def _distinct_starts(Rs: np.ndarray, score: np.ndarray) -> list[int]:

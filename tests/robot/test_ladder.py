@@ -33,27 +33,39 @@ def moved(points, dx, yaw=0.0):
     return transform_points(T, points)
 
 
-def test_registration_of_a_symmetric_object_near_its_goal_is_ambiguous():
-    """A 6 x 6 cm cube 1.5 cm from its goal fits it turned by 90, 180 and 270 degrees as well: the best
-    registration to the nearest of them is within 3 cm, the others are not, so the verdict is ``ambiguous``. An object with
-    no symmetry (a box with a block on one end) at the same offset is an unambiguous success."""
+def test_registration_verdict_up_to_symmetry_and_ambiguous_when_the_views_differ():
+    """A 6 x 6 cm cube 1.5 cm from its goal fits it turned by 90, 180 and 270 degrees as well: the flow
+    points to the nearest fit, and since both clouds show the same cube, the other fits are its own
+    symmetry: a success (goals are reached up to symmetry). A box whose end block is hidden in the
+    current view but seen in the goal's fits the goal both ways round, one within 3 cm and one not,
+    and the goal shows surface the current cloud lacks: ``ambiguous``, never a success. With no
+    symmetry and both views alike (the box with its block in both), a plain success."""
     rng = np.random.default_rng(0)
     cube = box_cloud((0.06, 0.06, 0.06))
     reg = register(moved(cube, 0.015) + rng.normal(0, 0.0005, cube.shape), cube, "planar")
-    # the flow points to the nearest of the four equally good fits: the 1.5 cm shift
     assert abs(reg.distance - 0.015) < 0.003 and reg.distance < min(reg.alternatives)
-    assert reg.ambiguous and max(reg.alternatives) > SUCCESS_THRESHOLD_M
-    assert reg.verdict(SUCCESS_THRESHOLD_M) == "ambiguous"
+    assert reg.ambiguous and max(reg.alternatives) > SUCCESS_THRESHOLD_M and reg.goal_coverage > 0.9
+    assert reg.verdict(SUCCESS_THRESHOLD_M) == "success"
 
-    shape = np.concatenate([box_cloud((0.12, 0.05, 0.03)), box_cloud((0.03, 0.05, 0.03)) + [0.045, 0, 0.03]])
+    body = box_cloud((0.12, 0.05, 0.03))
+    block = box_cloud((0.04, 0.05, 0.03)) + [0.04, 0, 0.03]
+    shape = np.concatenate([body, block])
+    reg = register(moved(body, 0.015) + rng.normal(0, 0.0005, body.shape), shape, "planar")
+    assert reg.goal_coverage < 0.85 and reg.verdict(SUCCESS_THRESHOLD_M) == "ambiguous"
+
     reg = register(moved(shape, 0.015, 0.1) + rng.normal(0, 0.0005, shape.shape), shape, "planar")
     assert reg.verdict(SUCCESS_THRESHOLD_M) == "success" and not reg.ambiguous
-    # the verdict over the best and its alternatives: all within, some, none
+    # the verdict: (distance, alternatives, goal coverage)
     verdict = [
-        Registration(np.eye(4), 0.001, 1.0, d, 0.0, alt).verdict(SUCCESS_THRESHOLD_M)
-        for d, alt in ((0.01, (0.02,)), (0.05, (0.01,)), (0.05, (0.04,)), (0.05, ()))
+        Registration(np.eye(4), 0.001, 1.0, d, 0.0, alt, cov).verdict(SUCCESS_THRESHOLD_M)
+        for d, alt, cov in (
+            (0.01, (0.02,), 0.5),
+            (0.01, (0.05,), 0.95),
+            (0.01, (0.05,), 0.5),
+            (0.05, (0.06,), 0.95),
+        )
     ]
-    assert verdict == ["success", "ambiguous", "failure", "failure"]
+    assert verdict == ["success", "success", "ambiguous", "failure"]
 
 
 def test_an_ambiguous_registration_ends_the_episode_and_is_not_a_success(tiny_model, tmp_path, monkeypatch):
@@ -65,7 +77,7 @@ def test_an_ambiguous_registration_ends_the_episode_and_is_not_a_success(tiny_mo
 
     def ambiguous(source, target, mode="6d", seed=0):
         reg = real_register(source, target, mode, seed)
-        return Registration(reg.T, reg.rmse, reg.inlier_fraction, 0.01, reg.seconds, (0.06,))
+        return Registration(reg.T, reg.rmse, reg.inlier_fraction, 0.01, reg.seconds, (0.06,), 0.5)
 
     monkeypatch.setattr(loop, "register", ambiguous)
     dep = Deployment.prepare(DeployConfig(robot="sim", model=tiny_model, episodes=1, log_dir=tmp_path / "s"))
