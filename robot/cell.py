@@ -84,6 +84,8 @@ class Perception:
     background_frames: int = 10  # frames averaged (nanmedian) by capture-background
     registration_max_rmse: float = 0.004  # m, RMS of inlier correspondences after ICP
     registration_min_inliers: float = 0.8  # fraction of object points with a goal point within 1 cm
+    # success is claimed only this far inside the 3 cm threshold (registration's distance error)
+    success_margin: float = 0.005
     max_frame_age: float = 1.0  # s, a frame older than this (or than the last motion) is stale
     warmup_frames: int = 5  # frames dropped after a camera starts (auto-exposure)
 
@@ -379,6 +381,7 @@ def parse_cell(data: dict, source: str = "<dict>") -> Cell:
         "background_frames",
         "registration_max_rmse_m",
         "registration_min_inliers",
+        "success_margin_m",
         "max_frame_age_s",
         "warmup_frames",
     )
@@ -388,6 +391,7 @@ def parse_cell(data: dict, source: str = "<dict>") -> Cell:
         background_frames=per.integer("background_frames", 10, low=1),
         registration_max_rmse=per.number("registration_max_rmse_m", 0.004, low=0, high=0.05, strict_low=True),
         registration_min_inliers=per.number("registration_min_inliers", 0.8, low=0, high=1),
+        success_margin=per.number("success_margin_m", 0.005, low=0, high=0.02),
         max_frame_age=per.number("max_frame_age_s", 1.0, low=0, strict_low=True),
         warmup_frames=per.integer("warmup_frames", 5, low=0),
     )

@@ -9,8 +9,8 @@ warm-up decision. Per step::
     frames  = cameras, fresh (newer than the last motion), arm at home        CameraError
     seg     = perception.segment(frames, background)                          PerceptionError
     reg     = registration.register(seg.obj_points, goal.points)              RegistrationError
-    success = reg.distance < 3 cm for every equally good registration          (episode ends)
-              (one of a symmetric pose that is not: "ambiguous", never a success)
+    success = reg.distance < 3 cm − margin, the views agree                    (episode ends)
+              (else "ambiguous", never a success: Registration.verdict)
     obs     = build_observation(..., T_goal = reg.T)  ->  gate.check_observation
     action  = policy.act(obs)                         ->  gate.check_action   InputError
     plan    = gate.plan_primitive(point, normal, motion)                      PrimitiveRejected,
@@ -398,10 +398,16 @@ class Deployment:
                     self.cell.perception.registration_min_inliers,
                 )
                 last_distance = reg.distance
-                # "ambiguous": the best registration is within 3 cm, an equally good one (a symmetric
-                # pose) is not: the episode ends, and is reported as ambiguous, never as a success
-                last_verdict = reg.verdict(SUCCESS_THRESHOLD_M)
-                if last_verdict != "failure" or step == cfg.max_steps:
+                # "ambiguous": the nearest fit is within 3 cm, an equally good one is not, and the goal
+                # shows surface the current view lacks: the episode ends, reported as ambiguous
+                # "uncertain": under 3 cm by less than the cell's success margin (none for the twin's
+                # true-pose perception): not yet claimed, the policy acts again; if the step limit
+                # comes first, reported as ambiguous
+                margin = 0.0 if cfg.perception == "true" else self.cell.perception.success_margin
+                last_verdict = reg.verdict(SUCCESS_THRESHOLD_M, margin)
+                if last_verdict in ("success", "ambiguous") or step == cfg.max_steps:
+                    if last_verdict == "uncertain":
+                        last_verdict = "ambiguous"
                     self._save_step(ep, step, frames, seg, None, None, None, reg)
                     saved = True
                     rec.outcome = last_verdict if last_verdict != "failure" else "step_limit"
@@ -503,8 +509,8 @@ class Deployment:
         success = last_verdict == "success"
         reason = {
             "success": "",
-            "ambiguous": "ambiguous: within 3 cm of the goal up to the object's symmetry "
-            "(an equally good registration is not)",
+            "ambiguous": "ambiguous: registration cannot say whether it is within 3 cm (the goal's view "
+            "shows surface the current one lacks, or the distance is within the success margin of 3 cm)",
         }.get(last_verdict, "step limit")
         return self._end_episode(
             ep,

@@ -56,7 +56,7 @@ DISTINCT_START_DEG = 25.0  # ... at least this far apart (so that distinct solut
 AMBIGUOUS_RMS = 1.25
 AMBIGUOUS_SLACK_M = 0.0005
 AMBIGUOUS_DISTINCT_M = 0.015
-COVERAGE_MIN = 0.85  # of the goal cloud within INLIER_M of the registered current cloud: the views agree
+COVERAGE_MIN = 0.92  # of the goal cloud within INLIER_M of the registered current cloud: the views agree
 COVERAGE_POINTS = 500
 GOAL_FORMAT = "hydo-goal/1"
 GOAL_KINDS = ("captured", "offset")  # Goal.kind: the object placed at the goal | the start cloud moved
@@ -81,14 +81,17 @@ class Registration:
     def ambiguous(self) -> bool:
         return bool(self.alternatives)
 
-    def verdict(self, threshold: float) -> str:
+    def verdict(self, threshold: float, margin: float = 0.0) -> str:
         """``failure`` when the nearest equally good fit is ``threshold`` or further; ``success`` when it
         is nearer and either no other fit disagrees or the goal cloud is covered (``COVERAGE_MIN``:
         both views show the same surface, so the fits that disagree are the object's own symmetry,
         and goals are reached up to symmetry, ``sim.contract``); else ``ambiguous``: the current view
-        lacks surface the goal view shows, and the fits disagree on whether it is at the goal."""
+        lacks surface the goal view shows, and the fits disagree on whether it is at the goal;
+        ``uncertain`` within ``margin`` under the threshold (the registration's own distance error)."""
         if self.distance >= threshold:
             return "failure"
+        if self.distance >= threshold - margin:
+            return "uncertain"
         if self.goal_coverage >= COVERAGE_MIN or all(a < threshold for a in self.alternatives):
             return "success"
         return "ambiguous"

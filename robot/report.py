@@ -88,7 +88,7 @@ class SessionResult:
             "force_stops": self.force_stops,
             "reflexes": self.reflexes,
             "reflex_limit_episodes": self.reflex_limit_episodes,
-            # within 3 cm up to the object's symmetry: neither a success nor a failure
+            # registration cannot tell whether it is within 3 cm: neither a success nor a failure
             "ambiguous_episodes": sum(e.cause == "ambiguous" for e in eps),
         }
 
@@ -108,7 +108,7 @@ def summary_lines(res: SessionResult) -> list[tuple[str, str]]:
         ("success rate (registration)", pct(s["success_rate"])),
     ]
     if s["ambiguous_episodes"]:
-        rows.append(("ambiguous (symmetric pose, not counted)", str(s["ambiguous_episodes"])))
+        rows.append(("ambiguous (not counted as success)", str(s["ambiguous_episodes"])))
     if s["true_success_rate"] is not None:
         rows.append(("success rate (twin, true poses)", pct(s["true_success_rate"])))
     rows.append(("primitives", str(s["primitives"])))
