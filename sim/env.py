@@ -164,6 +164,7 @@ class BinEnv(gym.Env):
         )
 
     def _observe(self) -> dict[str, np.ndarray]:
+        self._refresh_goal()
         obj_p, obj_n, bg = self.observer.segmented_clouds(self.scene)
         obs = build_observation(
             obj_p, obj_n, bg, self.scene.object_T(), self.T_goal_eff, self.n_obj, self.n_bg, self.np_random
@@ -172,7 +173,8 @@ class BinEnv(gym.Env):
         return obs
 
     def _evaluate(self) -> tuple[float, bool, float]:
-        """Reward, success and distance at the current pose (call ``_refresh_goal`` first)."""
+        """Reward, success and distance at the current pose."""
+        self._refresh_goal()
         pts = transform_points(self.scene.object_T(), self.scene.asset.surface_points)
         return reward_and_success(pts, self.scene.object_T(), self.T_goal_eff)
 
@@ -216,7 +218,6 @@ class BinEnv(gym.Env):
         self.scene.settle(max_s=0.5)
         self.goal_pose = (gpos, gquat)
         self._steps = 0
-        self._refresh_goal()
         _, _, dist = self._evaluate()
         return self._observe(), {"object": asset.name, "distance": dist, "success": False}
 
@@ -230,7 +231,6 @@ class BinEnv(gym.Env):
         self._set_task_goal()
         self._steps = 0
         self._trajectory = []
-        self._refresh_goal()
         _, _, dist = self._evaluate()
         return self._observe(), {"object": self.scene.asset.name, "distance": dist, "success": False}
 
@@ -275,7 +275,6 @@ class BinEnv(gym.Env):
             )
             if self.task.goal_follows_object:
                 self._set_task_goal()
-        self._refresh_goal()
         reward, success, dist = self._evaluate()
         left_bin = not self.scene.object_in_bin()
         terminated = bool(success or left_bin)
