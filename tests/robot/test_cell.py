@@ -24,6 +24,17 @@ def test_example_cell_loads_and_is_consistent(cell):
     assert cell.workspace.floor_z == pytest.approx(cell.bin_center[2])
 
 
+def test_example_cell_bin_and_workspace_are_the_training_scenes(cell):
+    """The policy trains with the training scene's bin and workspace box (feasibility mask, refused
+    plans); the shipped cell must be that bin and box, moved to where the arm reaches all of it."""
+    from sim.primitive import BIN_INNER_SIZE_M, SIM_WORKSPACE
+
+    np.testing.assert_allclose(cell.bin_size, BIN_INNER_SIZE_M, atol=1e-9)
+    shift = cell.bin_center  # the training bin frame: floor top at z = 0, centred at x = y = 0
+    np.testing.assert_allclose(np.array(cell.workspace.low) - shift, SIM_WORKSPACE.low, atol=1e-9)
+    np.testing.assert_allclose(np.array(cell.workspace.high) - shift, SIM_WORKSPACE.high, atol=1e-9)
+
+
 def test_example_cameras_are_the_training_scene_cameras_shifted_by_the_bin(cell):
     """The twin's cell must see the bin like the training renderer (sim/assets/scene.xml) does."""
     import mujoco
