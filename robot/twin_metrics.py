@@ -15,7 +15,7 @@ import numpy as np
 from robot.registration import adds_error
 from sim.contract import symmetric_goal, transform_points
 from sim.depth import mask_iou
-from sim.symmetry import probe_points, symmetries
+from sim.symmetry import symmetries
 
 
 def mask_iou_vs_truth(world, masks: list[np.ndarray]) -> float:
@@ -28,7 +28,7 @@ def nearest_true_goal(world, T_goal: np.ndarray) -> np.ndarray:
     """Of the poses that look exactly like the true goal ``T_goal`` (the object's symmetries), the one
     nearest the object's true pose: the training env's goal (``sim.contract.symmetric_goal``)."""
     asset = world.asset
-    return symmetric_goal(world.object_T(), T_goal, probe_points(asset), symmetries(asset))
+    return symmetric_goal(world.object_T(), T_goal, asset.surface_points, symmetries(asset))
 
 
 def true_distance(world, T_goal: np.ndarray) -> float:

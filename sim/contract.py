@@ -75,18 +75,29 @@ def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ T[:3, :3].T + T[:3, 3]
 
 
+SYMMETRY_PROBE_POINTS = 256  # surface samples that rank the symmetric goals first ...
+SYMMETRY_FINALISTS = 4  # ... and the best few, ranked again on all of them
+
+
 def symmetric_goal(
     T_obj: np.ndarray, T_goal: np.ndarray, points_obj: np.ndarray, symmetries: np.ndarray
 ) -> np.ndarray:
     """The goal pose (4, 4) to use: of ``T_goal · S`` for the object's ``symmetries (S, 4, 4)``
-    (object frame, identity among them), the one whose mean goal flow from ``T_obj`` is smallest,
-    measured on ``points_obj (P, 3)`` (surface samples in the object frame)."""
+    (object frame, the identity first), the one whose mean goal flow from ``T_obj`` over the surface
+    samples ``points_obj (P, 3)`` (object frame) is smallest. Ranked on a strided subset first, then
+    the finalists on all samples (~0.3 ms for a cylinder's 72 symmetries)."""
     if len(symmetries) <= 1:
         return T_goal
     goals = T_goal[None] @ symmetries  # (S, 4, 4)
-    now = transform_points(T_obj, points_obj)  # (P, 3)
-    there = np.einsum("sij,pj->spi", goals[:, :3, :3], points_obj) + goals[:, None, :3, 3]  # (S, P, 3)
-    return goals[int(np.argmin(np.linalg.norm(there - now, axis=2).mean(1)))]
+
+    def mean_flow(G: np.ndarray, pts: np.ndarray) -> np.ndarray:  # (K, 4, 4), (P, 3) -> (K,)
+        there = G[:, :3, :3] @ pts.T + G[:, :3, 3:]  # (K, 3, P)
+        return np.linalg.norm(there - transform_points(T_obj, pts).T, axis=1).mean(1)
+
+    probe = points_obj[:: max(1, len(points_obj) // SYMMETRY_PROBE_POINTS)]
+    # the goal itself (symmetries[0], the identity) is always a finalist: never asked for more than it
+    finalists = np.unique(np.r_[0, np.argsort(mean_flow(goals, probe))[:SYMMETRY_FINALISTS]])
+    return goals[finalists[int(np.argmin(mean_flow(goals[finalists], points_obj)))]]
 
 
 def goal_flow(points_world: np.ndarray, T_obj: np.ndarray, T_goal: np.ndarray) -> np.ndarray:

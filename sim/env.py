@@ -63,7 +63,7 @@ from sim.objects import ObjectAsset, load_objects
 from sim.observe import MeshObserver
 from sim.primitive import SIM_WORKSPACE, PrimitiveRejected, check_plan, primitive_waypoints
 from sim.scene import BinScene
-from sim.symmetry import probe_points, symmetries
+from sim.symmetry import symmetries
 from sim.tasks import TaskStep, get_task
 
 CLUTTER_CHOICES = (0, 1, 2, 5)
@@ -93,6 +93,7 @@ class BinEnv(gym.Env):
             )
         self.goal_symmetry = goal_symmetry
         self._symmetries: dict[str, np.ndarray] = {}
+        self._goal_key: tuple | None = None
         if goals not in GOAL_MODES:
             raise ValueError(f"`goals` must be one of {list(GOAL_MODES)}. Got {goals!r}.")
         if clutter not in CLUTTER_CHOICES:
@@ -152,14 +153,19 @@ class BinEnv(gym.Env):
     def _refresh_goal(self) -> None:
         """The goal the flow, reward and success use: the nearest pose that looks like ``T_goal``."""
         asset = self.scene.asset
+        T_obj = self.scene.object_T()
+        key = (asset.name, T_obj.tobytes(), self.T_goal.tobytes())
+        if key == self._goal_key:  # evaluated and observed in the same state: pick once
+            return
+        self._goal_key = key
         if asset.name not in self._symmetries:
             self._symmetries[asset.name] = (
                 symmetries(asset) if self.goal_symmetry == "object" else np.eye(4)[None]
             )
         self.T_goal_eff = symmetric_goal(
-            self.scene.object_T(),
+            T_obj,
             self.T_goal,
-            probe_points(asset),
+            asset.surface_points,
             self._symmetries[asset.name],
         )
 

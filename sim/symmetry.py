@@ -38,7 +38,6 @@ STEP_DEG = 10.0
 MEAN_TOL = 1.3
 TAIL_TOL = 2.6
 CHECK_POINTS = 1024  # surface samples rotated per candidate
-SYMMETRY_POINTS = 512  # surface samples that pick the nearest symmetric goal (the reward uses all)
 SAME_DEG = 3.0  # candidates closer than this to an accepted one are the same rotation
 
 
@@ -99,12 +98,6 @@ def _cache_path(asset: ObjectAsset):
     from sim.goals import _cache_dir, geometry_hash
 
     return _cache_dir().parent / "symmetries" / f"{asset.name}-{geometry_hash(asset)}.npz"
-
-
-def probe_points(asset: ObjectAsset) -> np.ndarray:
-    """About ``SYMMETRY_POINTS`` of the surface samples (object frame), spread over the whole surface
-    (strided: the samples come part by part), that pick the nearest symmetric goal."""
-    return asset.surface_points[:: max(1, len(asset.surface_points) // SYMMETRY_POINTS)]
 
 
 _CACHE: dict[str, np.ndarray] = {}
