@@ -215,7 +215,9 @@ class BinEnv(gym.Env):
         self.scene.reset()  # full reset: MuJoCo's warm-start state must not leak between episodes
         # the start and goal: sim.goals, shared with the deploy twin (same draws, same order)
         poses = self._poses[asset.name]
-        (pos, quat), (gpos, gquat) = sample_start_and_goal(asset, self.goal_mode, rng, poses)
+        (pos, quat), (gpos, gquat) = sample_start_and_goal(
+            asset, self.goal_mode, rng, poses, symmetric=self.goal_symmetry == "object"
+        )
         self.T_goal = pose_matrix(gpos, gquat)
         self.scene.set_object_pose(pos, quat)
         if clutter:

@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from sim.atomic import atomic_write
-from sim.contract import pose_matrix, transform_points
+from sim.contract import pose_matrix, symmetric_goal, transform_points
 from sim.objects import ObjectAsset, builtin_objects
 from sim.primitive import BIN_INNER_SIZE_M
+from sim.symmetry import symmetries
 
 N_STABLE_POSES = 100
 SHIPPED_FILE = Path(__file__).parent / "assets" / "stable_poses.npz"
@@ -179,14 +180,19 @@ def sample_object(assets, rng: np.random.Generator) -> ObjectAsset:
 
 
 def sample_start_and_goal(
-    asset: ObjectAsset, goal_mode: str, rng: np.random.Generator, poses: np.ndarray | None = None
+    asset: ObjectAsset,
+    goal_mode: str,
+    rng: np.random.Generator,
+    poses: np.ndarray | None = None,
+    symmetric: bool = True,
 ):
     """A start and a goal of ``asset`` in the bin frame: ``((pos, quat), (goal_pos, goal_quat))``.
 
     The start is a random stable pose (of ``poses``, default :func:`stable_poses`) at a random yaw and
     bin position; ``planar`` goals translate it (same stable pose and yaw), ``6d`` goals pick another
     stable pose, yaw and position. A pair whose goal is within ``MIN_GOAL_DISTANCE_M`` (mean distance
-    of the surface samples) is re-drawn, up to ``GOAL_TRIES`` times (then the last pair is kept).
+    of the surface samples, up to the object's symmetry unless ``symmetric=False``:
+    ``sim.contract.symmetric_goal``) is re-drawn, up to ``GOAL_TRIES`` times (then the last pair is kept).
     """
     poses = stable_poses(asset) if poses is None else poses
     for _ in range(GOAL_TRIES):
@@ -197,9 +203,14 @@ def sample_start_and_goal(
             gpos, gquat = sample_placement(asset, start, rng, yaw=yaw)
         else:
             gpos, gquat = sample_placement(asset, poses[rng.integers(len(poses))], rng)
+        # the distance the episode starts at, up to the object's symmetry (as the reward measures
+        # it): a 6D goal that is the start turned by a symmetry is no goal at all
+        T_start = pose_matrix(pos, quat)
+        T_goal = pose_matrix(gpos, gquat)
+        if symmetric:
+            T_goal = symmetric_goal(T_start, T_goal, asset.surface_points, symmetries(asset))
         d = np.linalg.norm(
-            transform_points(pose_matrix(gpos, gquat), asset.surface_points)
-            - transform_points(pose_matrix(pos, quat), asset.surface_points),
+            transform_points(T_goal, asset.surface_points) - transform_points(T_start, asset.surface_points),
             axis=1,
         ).mean()
         if d > MIN_GOAL_DISTANCE_M:

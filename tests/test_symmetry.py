@@ -103,3 +103,16 @@ def test_env_distance_is_up_to_symmetry_and_never_above_the_exact_one(goals):
         BinEnv(goal_symmetry="mirror")
     sym.close()
     exact.close()
+
+
+def test_6d_episodes_start_away_from_the_goal_up_to_symmetry():
+    """The goal sampler measures the start's distance as the reward does: a 6D goal that is the start
+    turned by one of the object's symmetries is re-drawn, never an episode solved before it starts."""
+    from sim.env import BinEnv
+    from sim.goals import GOAL_TRIES, MIN_GOAL_DISTANCE_M
+
+    assets = tuple(a for name in ("cube", "cylinder_00", "box_00") for a in load_objects(name))
+    env = BinEnv(objects=assets, goals="6d")
+    distances = [env.reset(seed=s)[1]["distance"] for s in range(40)]
+    assert GOAL_TRIES > 1 and min(distances) > MIN_GOAL_DISTANCE_M
+    env.close()
