@@ -16,15 +16,13 @@ then :func:`sample_start_and_goal`, in the bin frame (origin at the centre of th
 
 from __future__ import annotations
 
-import hashlib
-import os
 from pathlib import Path
 
 import numpy as np
 
 from sim.atomic import atomic_write
 from sim.contract import pose_matrix, symmetric_goal, transform_points
-from sim.objects import ObjectAsset, builtin_objects
+from sim.objects import ObjectAsset, builtin_objects, cache_root, geometry_hash
 from sim.primitive import BIN_INNER_SIZE_M
 from sim.symmetry import symmetries
 
@@ -40,14 +38,6 @@ WALL_MARGIN_M = 0.02  # keep sampled object footprints this far from the bin wal
 PLACEMENT_HALF_M = np.array([0.12, 0.14])
 MIN_GOAL_DISTANCE_M = 0.05  # a goal must start further than the success threshold (with margin)
 GOAL_TRIES = 100  # start/goal pairs drawn before the last one is kept, however close
-
-
-def geometry_hash(asset: ObjectAsset) -> str:
-    """Short sha256 of an object's collision parts: the key of every stable-pose cache."""
-    h = hashlib.sha256()
-    for p in asset.parts:
-        h.update(np.ascontiguousarray(p, dtype=np.float64).tobytes())
-    return h.hexdigest()[:16]
 
 
 def random_quaternion(rng: np.random.Generator) -> np.ndarray:
@@ -122,7 +112,7 @@ def compute_stable_poses(
 
 
 def _cache_dir() -> Path:
-    return Path(os.environ.get("HYDO_CACHE", Path.home() / ".cache" / "hydo")) / "stable_poses"
+    return cache_root() / "stable_poses"
 
 
 def _atomic_savez(path: Path, **arrays) -> None:

@@ -45,6 +45,8 @@ built-in path free of trimesh's ~1 s import and makes each part's vertex count e
 from __future__ import annotations
 
 import functools
+import hashlib
+import os
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -405,6 +407,21 @@ def _make_asset(name: str, category: str, split: str, point_sets: list[np.ndarra
         surface_normals=_readonly(nrm.astype(np.float32)),
         extents=_readonly(allv.max(0) - allv.min(0)),
     )
+
+
+def geometry_hash(asset: ObjectAsset) -> str:
+    """Short sha256 of an object's collision parts: the key of every per-object cache (stable poses,
+    symmetries)."""
+    h = hashlib.sha256()
+    for p in asset.parts:
+        h.update(np.ascontiguousarray(p, dtype=np.float64).tobytes())
+    return h.hexdigest()[:16]
+
+
+def cache_root() -> Path:
+    """Where per-object results computed on first use are cached (``HYDO_CACHE``, default
+    ``~/.cache/hydo``)."""
+    return Path(os.environ.get("HYDO_CACHE", Path.home() / ".cache" / "hydo"))
 
 
 @functools.cache

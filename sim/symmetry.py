@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.atomic import atomic_write
-from sim.objects import ObjectAsset, builtin_objects
+from sim.objects import ObjectAsset, builtin_objects, cache_root, geometry_hash
 
 SHIPPED_FILE = Path(__file__).parent / "assets" / "symmetries.npz"  # `python -m sim.symmetry`
 
@@ -95,9 +95,7 @@ def find_symmetries(points: np.ndarray) -> np.ndarray:
 
 
 def _cache_path(asset: ObjectAsset):
-    from sim.goals import _cache_dir, geometry_hash
-
-    return _cache_dir().parent / "symmetries" / f"{asset.name}-{geometry_hash(asset)}.npz"
+    return cache_root() / "symmetries" / f"{asset.name}-{geometry_hash(asset)}.npz"
 
 
 _CACHE: dict[str, np.ndarray] = {}
@@ -106,8 +104,6 @@ _CACHE: dict[str, np.ndarray] = {}
 def symmetries(asset: ObjectAsset) -> np.ndarray:
     """The ``(S, 4, 4)`` symmetry transforms of ``asset`` (object frame, identity first): shipped,
     cached in memory and on disk, or computed now (~1 s)."""
-    from sim.goals import geometry_hash
-
     key = f"{asset.name}-{geometry_hash(asset)}"
     if not _CACHE and SHIPPED_FILE.exists():
         _CACHE.update(dict(np.load(SHIPPED_FILE)))
@@ -130,8 +126,6 @@ def symmetries(asset: ObjectAsset) -> np.ndarray:
 
 def main() -> None:
     """``python -m sim.symmetry``: regenerate the shipped symmetries of every built-in object."""
-    from sim.goals import geometry_hash
-
     arrays = {}
     for asset in builtin_objects():
         arrays[f"{asset.name}-{geometry_hash(asset)}"] = find_symmetries(asset.surface_points)
