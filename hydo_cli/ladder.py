@@ -144,6 +144,7 @@ def run_env_rung(rung: str, model: Path, n: int, seed: int, objects: str, goals:
 def run_twin_rung(rung: str, model: Path, n: int, seed: int, objects: str, log_dir: Path) -> RungResult:
     """``twin-true`` / ``twin``: ``hydo deploy --robot sim`` on the same episodes (``robot.loop``)."""
     from robot.loop import DeployConfig, Deployment
+    from robot.report import write_summary
 
     t0 = time.perf_counter()
     cfg = DeployConfig(
@@ -157,6 +158,7 @@ def run_twin_rung(rung: str, model: Path, n: int, seed: int, objects: str, log_d
         command=f"hydo deploy ladder (rung {rung})",
     )
     res = Deployment.prepare(cfg).run()
+    write_summary(res)  # the session folder reads like any `hydo deploy` session's
     last_step = {}
     for s in res.steps:  # the episode's last observation: its registration decided the verdict
         last_step[s.episode] = s

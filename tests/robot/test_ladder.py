@@ -176,6 +176,7 @@ def test_ladder_command_runs_the_same_episodes_on_each_rung(tiny_model, tmp_path
     for rung in doc["rungs"]:
         failed = sum(not e["success"] for e in doc["episodes"][rung["rung"]])
         assert sum(rung["causes"].values()) == failed
+    assert json.loads((out / "twin-true" / "summary.json").read_text())["episodes"] == 2
     objects = [[e["object"] for e in doc["episodes"][k]] for k in ("env", "twin-true")]
     assert objects[0] == objects[1]
 
