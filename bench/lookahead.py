@@ -19,8 +19,10 @@ Usage::
     python bench/lookahead.py --run runs/train/hydo-cm-s1 --top 1,4,16 --episodes 40
 
 JSON: ``{"C=<n>": {"success_rate", "mean_steps_to_success", "mean_final_distance_m",
-"max_replay_error_m", "wall_s", "episodes"}, "meta": {...}}``; ``max_replay_error_m`` is the largest
-difference between a push's distance when tried and when executed (0 when replay is exact).
+"max_replay_error_m", "wall_s", "episodes", "move_success_rate", "flip_success_rate", ...}, "meta":
+{...}}``; ``max_replay_error_m`` is the largest difference between a push's distance when tried and
+when executed (0 when replay is exact); ``flip`` episodes are those whose goal puts another face up
+(``hydo_cli.report.FLIP_TILT_DEG``), ``move`` the rest.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
+from hydo_cli.report import FLIP_TILT_DEG  # noqa: E402
 from sim.atomic import atomic_write_text  # noqa: E402
 from sim.baselines import heuristic_action  # noqa: E402
 from sim.env import BinEnv  # noqa: E402
@@ -105,6 +108,7 @@ def search_episode(env, propose, seed: int) -> dict:
     """One episode of greedy one-step search over ``propose(obs)``'s candidates; returns its outcome
     and the largest replay error."""
     obs, info = env.reset(seed=seed)
+    tilt = info["goal_tilt_deg"]
     replay_error, steps = 0.0, 0
     while True:
         snapshot = env.get_sim_state()
@@ -124,6 +128,7 @@ def search_episode(env, propose, seed: int) -> dict:
                 "steps": steps,
                 "final_distance": float(info["distance"]),
                 "replay_error": replay_error,
+                "flip": tilt >= FLIP_TILT_DEG,
             }
 
 
@@ -163,6 +168,7 @@ def main() -> None:
         t0 = time.perf_counter()
         eps = [search_episode(env, propose, args.seed * 100_000 + i) for i in range(args.episodes)]
         ok = [e for e in eps if e["success"]]
+        kinds = {k: [e["success"] for e in eps if e["flip"] == (k == "flip")] for k in ("move", "flip")}
         results[f"{'top' if args.run else 'C'}={c}"] = {
             "candidates": c,
             "episodes": len(eps),
@@ -170,6 +176,9 @@ def main() -> None:
             "mean_steps_to_success": float(np.mean([e["steps"] for e in ok])) if ok else None,
             "mean_final_distance_m": float(np.mean([e["final_distance"] for e in eps])),
             "max_replay_error_m": float(max(e["replay_error"] for e in eps)),
+            # 6D goals: success where the goal keeps the face up, and where it asks for a flip
+            **{f"{k}_episodes": len(v) for k, v in kinds.items()},
+            **{f"{k}_success_rate": float(np.mean(v)) if v else None for k, v in kinds.items()},
             "wall_s": time.perf_counter() - t0,
         }
 
@@ -179,6 +188,7 @@ def main() -> None:
         "top" if args.run else "candidates",
         "episodes",
         "success",
+        "move / flip",
         "steps to success",
         "final dist (cm)",
         "replay err (mm)",
@@ -191,6 +201,10 @@ def main() -> None:
             str(r["candidates"]),
             str(r["episodes"]),
             f"{r['success_rate']:.0%}",
+            " / ".join(
+                "-" if r[f"{k}_success_rate"] is None else f"{r[f'{k}_success_rate']:.0%}"
+                for k in ("move", "flip")
+            ),
             steps,
             f"{r['mean_final_distance_m'] * 100:.1f}",
             f"{r['max_replay_error_m'] * 1000:.2f}",

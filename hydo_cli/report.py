@@ -17,6 +17,10 @@ SPLIT_TITLES = {
     "unseen-instance": "Unseen Instance",
     "train": "Training Objects",
 }
+#: A goal that tilts the object's up direction by this much or more asks for a flip (6D goals): the
+#: stable poses of one face differ by yaw only (tilt 0), those of two faces by 45° or more.
+FLIP_TILT_DEG = 30.0
+
 #: The paper's method names (design.md §1), in Table I's row order; baselines after them.
 METHOD_NAMES = {
     "hacman": "HACMan",
@@ -63,6 +67,7 @@ def run_summary(results: Sequence, task=None) -> dict:
         "per_object": {
             k: {"episodes": len(v), "success_rate": float(np.mean(v))} for k, v in sorted(per_object.items())
         },
+        "by_goal": goal_kind_breakdown(results),
     }
     if task is not None:
         from sim.tasks import behaviour_entropy
@@ -75,6 +80,24 @@ def run_summary(results: Sequence, task=None) -> dict:
             behaviour_counts={str(b): int(n) for b, n in enumerate(counts) if n},
             episodes_without_behaviour=int((ids < 0).sum()),
         )
+    return out
+
+
+def goal_kind_breakdown(results: Sequence) -> dict[str, dict]:
+    """Success by what the goal asks: ``move`` (same face up: translate and yaw) or ``flip`` (another
+    face up, ``goal_tilt_deg`` ≥ FLIP_TILT_DEG), with the episodes' start and final distances (m)."""
+    out = {}
+    for kind in ("move", "flip"):
+        rs = [r for r in results if (r.goal_tilt_deg >= FLIP_TILT_DEG) == (kind == "flip")]
+        if not rs:
+            continue
+        failed = [r.final_distance for r in rs if not r.success]
+        out[kind] = {
+            "episodes": len(rs),
+            "success_rate": float(np.mean([r.success for r in rs])),
+            "mean_start_distance_m": float(np.mean([r.start_distance for r in rs])),
+            "median_failed_final_distance_m": float(np.median(failed)) if failed else None,
+        }
     return out
 
 

@@ -28,6 +28,8 @@ class EpisodeResult:
     rejected: int  # primitives refused (workspace or start collision)
     failure: str  # "" on success, else "object_left_bin" | "timeout"
     behaviour: int | None = None  # behaviour id of a ``sim.tasks`` task episode (None: none / no task)
+    start_distance: float = 0.0  # mean goal-flow norm at reset, metres
+    goal_tilt_deg: float = 0.0  # how far the goal tilts the object's up direction (~0: move, ≥ 30: flip)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -56,7 +58,7 @@ def run_episodes(
             slots[k] = None
             return
         obs, info = envs[k].reset(seed=episode_seed(seed, next_ep))
-        slots[k] = {"ep": next_ep, "obs": obs, "ret": 0.0, "rej": 0, "steps": 0, "object": info["object"]}
+        slots[k] = {"ep": next_ep, "obs": obs, "ret": 0.0, "rej": 0, "steps": 0, "start": info}
         if on_frame is not None:
             on_frame(next_ep, envs[k].render())
         next_ep += 1
@@ -75,7 +77,7 @@ def run_episodes(
                 on_frame(s["ep"], envs[k].render())
             if terminated or truncated:
                 r = EpisodeResult(
-                    object=s["object"],
+                    object=s["start"]["object"],
                     success=info["success"],
                     steps=s["steps"],
                     episode_return=s["ret"],
@@ -83,6 +85,8 @@ def run_episodes(
                     rejected=s["rej"],
                     failure="" if info["success"] else info["failure"],
                     behaviour=info.get("behaviour"),
+                    start_distance=s["start"]["distance"],
+                    goal_tilt_deg=s["start"].get("goal_tilt_deg", 0.0),
                 )
                 results[s["ep"]] = r
                 if on_episode is not None:

@@ -19,7 +19,9 @@ def run_rows(report: dict) -> tuple[list[str], list[list[str]]]:
     compare, task = report["compare"], report["task"]
     header = ["run", "method"] + (["objects"] if compare else [])
     header += ["success", "steps to success", "left bin", "timeout", "refused", "refused prims"]
-    header += (["entropy", "behaviours"] if task else []) + ["policy", "ep/s"]
+    flips = any("flip" in r.get("by_goal", {}) for r in report["runs"])
+    header += (["entropy", "behaviours"] if task else []) + (["move", "flip"] if flips else [])
+    header += ["policy", "ep/s"]
     rows = []
     for r in report["runs"]:
         f = r["failures"]
@@ -38,6 +40,9 @@ def run_rows(report: dict) -> tuple[list[str], list[list[str]]]:
                 f"{r['behaviour_entropy']:.3f}",
                 f"{r['behaviours_seen']}/{report['task']['n_behaviours']}",
             ]
+        if flips:  # 6D goals: success where the goal keeps the face up, and where it asks for a flip
+            kinds = r.get("by_goal", {})
+            row += [_pct(kinds[k]["success_rate"]) if k in kinds else "-" for k in ("move", "flip")]
         row += ["stochastic" if r["stochastic"] else "deterministic", f"{r['episodes_per_s']:.1f}"]
         rows.append(row)
     return header, rows

@@ -31,6 +31,8 @@ Arguments (``gymnasium.make("hydo/Bin-v0", ...)``)
 Starting state
     A random stable pose of a random object, with random yaw and bin position; ``planar`` goals
     translate it (same orientation), ``6d`` goals pick another random stable pose, yaw and position.
+    ``reset``'s info holds ``object``, ``distance`` and ``goal_tilt_deg``: how far the goal tilts the
+    object's up direction (up to its symmetry; 0 for planar goals, ~90 or ~180 for a flip).
 """
 
 from __future__ import annotations
@@ -227,7 +229,19 @@ class BinEnv(gym.Env):
         self.goal_pose = (gpos, gquat)
         self._steps = 0
         _, _, dist = self._evaluate()
-        return self._observe(), {"object": asset.name, "distance": dist, "success": False}
+        info = {
+            "object": asset.name,
+            "distance": dist,
+            "success": False,
+            "goal_tilt_deg": self._goal_tilt_deg(),
+        }
+        return self._observe(), info
+
+    def _goal_tilt_deg(self) -> float:
+        """Degrees between the object's up direction now and at the goal (up to its symmetry): ~0 when
+        the goal only moves and yaws it, ~90 or ~180 when the goal lies on another face (a flip)."""
+        R_rel = self.T_goal_eff[:3, :3] @ self.scene.object_T()[:3, :3].T  # current → goal, world frame
+        return float(np.degrees(np.arccos(np.clip(R_rel[2, 2], -1.0, 1.0))))
 
     def _reset_task(self, rng):
         """A task's start (fixed, or random in its start region) and goal; see ``sim.tasks``."""
@@ -240,7 +254,8 @@ class BinEnv(gym.Env):
         self._steps = 0
         self._trajectory = []
         _, _, dist = self._evaluate()
-        return self._observe(), {"object": self.scene.asset.name, "distance": dist, "success": False}
+        info = {"object": self.scene.asset.name, "distance": dist, "success": False}
+        return self._observe(), {**info, "goal_tilt_deg": self._goal_tilt_deg()}
 
     def _set_task_goal(self) -> None:
         gpos, gquat = self.task.goal(*self.scene.object_pose())

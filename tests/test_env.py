@@ -98,6 +98,29 @@ def test_info_poses_reproduce_the_observed_goal_flow():
     np.testing.assert_allclose(obs["features"][:64, 1:], want, atol=1e-5)
 
 
+def test_reset_reports_how_far_the_goal_tilts_the_object():
+    """``goal_tilt_deg``: 0 for planar goals; for 6D goals the angle between the up directions of
+    the start and the (nearest symmetric) goal pose, so flips read ≥ 30° and yaws 0."""
+    from sim.contract import pose_matrix
+
+    planar = BinEnv(objects="train", goals="planar", n_obj=32, n_bg=16)
+    # settling tilts a start by hundredths of a degree; a near-symmetry (a mug's handle, lying on its
+    # side) may stand in for the goal turned ~10° about the horizontal axis: never a flip
+    planar_tilts = [planar.reset(seed=s)[1]["goal_tilt_deg"] for s in range(10)]
+    assert max(planar_tilts) < 15 and np.median(planar_tilts) < 0.1
+    env = BinEnv(objects="train", goals="6d", n_obj=32, n_bg=16)
+    tilts = []
+    for s in range(40):
+        _, info = env.reset(seed=s)
+        R_goal = env.T_goal_eff[:3, :3]
+        R_now = pose_matrix(*env.scene.object_pose())[:3, :3]
+        up_goal, up_now = R_goal.T @ [0, 0, 1], R_now.T @ [0, 0, 1]  # world up in the object frame
+        want = np.degrees(np.arccos(np.clip(up_goal @ up_now, -1, 1)))
+        assert info["goal_tilt_deg"] == pytest.approx(want, abs=1e-6)
+        tilts.append(info["goal_tilt_deg"])
+    assert min(tilts) < 5 and max(tilts) > 60  # 6D goals include yaws and flips
+
+
 def test_goal_reached_when_object_placed_at_goal():
     env = BinEnv(objects="cube", goals="6d")
     env.reset(seed=1)

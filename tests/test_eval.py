@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from hydo_cli.main import app
-from hydo_cli.report import aggregate, failure_counts
+from hydo_cli.report import aggregate, failure_counts, goal_kind_breakdown
 from hydo_cli.rollout import EpisodeResult
 from hydo_cli.tables import compare_rows
 
@@ -38,6 +38,22 @@ def test_failure_reasons_count_timeouts_with_refused_primitives_twice():
         ep(False, "object_left_bin", rejected=1),
     ]
     assert failure_counts(results) == {"object_left_bin": 1, "timeout": 2, "primitive_rejected": 2}
+
+
+def test_goal_kinds_split_moves_from_flips_at_30_degrees():
+    def tilted(success, tilt, final):
+        return EpisodeResult(
+            "cube", success, 3, -0.1, final, 0, "" if success else "timeout", None, 0.2, tilt
+        )
+
+    results = [tilted(True, 0.0, 0.01), tilted(False, 29.0, 0.05), tilted(True, 90.0, 0.02)]
+    results += [tilted(False, 180.0, 0.08), tilted(False, 90.0, 0.12)]
+    kinds = goal_kind_breakdown(results)
+    assert kinds["move"]["episodes"] == 2 and kinds["move"]["success_rate"] == 0.5
+    assert kinds["flip"]["episodes"] == 3 and kinds["flip"]["success_rate"] == 1 / 3
+    assert kinds["flip"]["median_failed_final_distance_m"] == pytest.approx(0.10)
+    assert kinds["move"]["mean_start_distance_m"] == pytest.approx(0.2)
+    assert set(goal_kind_breakdown(results[:1])) == {"move"}  # planar goals: no flip row
 
 
 def test_multi_target_eval_writes_json_and_markdown(tmp_path):
