@@ -48,7 +48,9 @@ policy acts as in training's evaluation (its `policy` column says whether it sam
 
 Per run: success rate, mean primitives to success, per-object success and failure reasons: `left bin`
 and `timeout` (how failed episodes ended) and `refused` (failed episodes with at least one refused
-primitive; they are counted under their end reason too). Across runs: interquartile mean (IQM,
+primitive; they are counted under their end reason too). With 6D goals, `move` and `flip`: success
+where the goal keeps the object's face up and where it asks for another face up (the JSON's
+`by_goal` adds start and failed final distances). Across runs: interquartile mean (IQM,
 scipy trim_mean 0.25) with a 95% percentile bootstrap CI, over runs stratified by split with 4 or
 more runs per split; with fewer the IQM trims nothing (it is the mean of the runs) and the CI
 resamples episodes within each run.
