@@ -17,8 +17,9 @@ SPLIT_TITLES = {
     "unseen-instance": "Unseen Instance",
     "train": "Training Objects",
 }
-#: A goal that tilts the object's up direction by this much or more asks for a flip (6D goals): the
-#: stable poses of one face differ by yaw only (tilt 0), those of two faces by 45° or more.
+#: A 6D goal that tilts the object's up direction by this much or more counts as a flip (another face
+#: up): poses on one face differ by yaw only (tilt ~0; a near-symmetry may add ~10°), poses on two
+#: faces by the angle between the faces.
 FLIP_TILT_DEG = 30.0
 
 #: The paper's method names (design.md §1), in Table I's row order; baselines after them.
