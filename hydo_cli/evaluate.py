@@ -29,7 +29,6 @@ from hydo_cli.options import (
     ClutterOpt,
     EvalWeights,
     Goals,
-    GoalsOpt,
     ObjectsOpt,
     ObsSource,
     SeedOpt,
@@ -44,7 +43,8 @@ HELP = """Evaluate policies: success per run, IQM [95% CI] across runs, the pape
 
 Each TARGET is one run: heuristic, random, a run directory, a checkpoint or an exported model folder.
 Give several (e.g. the seeds of a method) to aggregate them. Every run faces the same episodes. The
-policy acts as in training's evaluation (its `policy` column says whether it samples).
+policy acts as in training's evaluation (its `policy` column says whether it samples). Goals are
+the mode the runs were trained on (a model's manifest, a run's config) unless --goals says otherwise.
 
 Per run: success rate, mean primitives to success, per-object success and failure reasons: `left bin`
 and `timeout` (how failed episodes ended) and `refused` (failed episodes with at least one refused
@@ -71,12 +71,28 @@ Examples:
 
   hydo eval heuristic random --objects cube --episodes 20 --json eval.json --markdown eval.md
 
-  hydo eval runs/hydo-s* runs/hacman-s* --compare --goals 6d --markdown table1.md
+  hydo eval runs/6d/hydo-cm-s* runs/6d/hacman-s* heuristic --compare --markdown table1.md
 
   hydo eval runs/hydo-push-line --task push-line --episodes 500
 """
 
 console = Console(stderr=True)
+
+
+def resolve_goals(goals: Goals | None, targets: list[str], loaded: list, task: bool) -> str:
+    """The goal mode to evaluate on: ``--goals`` if given, else the one the learned targets were
+    trained on (a 6D model is not silently scored on planar goals); planar for baselines alone."""
+    if goals is not None:
+        return goals.value
+    trained = {t: lp.goals for t, lp in zip(targets, loaded, strict=True) if lp.goals is not None}
+    if task or not trained:
+        return Goals.planar.value
+    if len(set(trained.values())) > 1:
+        listing = ", ".join(f"{t} ({g})" for t, g in trained.items())
+        raise HydoError(
+            f"the runs were trained on different goal modes: {listing}; give --goals planar or 6d"
+        )
+    return next(iter(trained.values()))
 
 
 def evaluate(
@@ -89,7 +105,14 @@ def evaluate(
         ),
     ],
     objects: ObjectsOpt = "train",
-    goals: GoalsOpt = Goals.planar,
+    goals: Annotated[
+        Goals | None,
+        typer.Option(
+            "--goals",
+            help="Goal mode: planar (translation only) or 6d. Default: the mode the runs were trained on "
+            "(planar for baselines alone); runs trained on different modes need it.",
+        ),
+    ] = None,
     clutter: ClutterOpt = 0,
     episodes: Annotated[
         int, typer.Option("--episodes", help="Evaluation episodes per run (and split).")
@@ -159,7 +182,7 @@ def evaluate(
         raise HydoError(
             "--compare evaluates every split (unseen-category, unseen-instance, train); drop --objects"
         )
-    if task is not None and (objects != "train" or clutter != 0 or goals != Goals.planar):
+    if task is not None and (objects != "train" or clutter != 0 or goals is not None):
         raise HydoError(
             f"--task {task.value} fixes the object, goal and obstacles; drop --objects/--goals/--clutter"
         )
@@ -195,6 +218,7 @@ def evaluate(
     loaded = [
         load_policy(t, seed=seed, feasible_only=feasible_only, weights=w, chain_noise=cn) for t in targets
     ]
+    goal_mode = resolve_goals(goals, targets, loaded, task_def is not None)
 
     # 3. run: same episodes for every run; envs per split and point counts
     frames: list = []
@@ -224,7 +248,7 @@ def evaluate(
                 if key not in envs_cache:
                     envs_cache[key] = make_envs(
                         split,
-                        goals.value,
+                        goal_mode,
                         clutter,
                         obs.value,
                         1,
@@ -283,7 +307,7 @@ def evaluate(
             "n_behaviours": task_def.n_behaviours,
             "behaviour_names": list(task_def.behaviour_names),
         },
-        "goals": goals.value,
+        "goals": goal_mode,
         "clutter": clutter,
         "obs": obs.value,
         "episodes": episodes,

@@ -37,6 +37,7 @@ class LoadedPolicy:
     stochastic: bool  # whether the policy samples at evaluation time
     description: str
     method: str = ""  # what --compare groups by: the run's / manifest's algo, or the baseline's name
+    goals: str | None = None  # the goal mode it was trained on ("planar" | "6d"); None: a baseline
 
 
 def load_policy(
@@ -99,6 +100,7 @@ def load_onnx_policy(folder: Path, seed: int, feasible_only: bool = True) -> Loa
         model.stochastic,
         f"{model.manifest['algo']} (onnx {folder})",
         str(model.manifest["algo"]),
+        str(model.manifest["goals"]),
     )
 
 
@@ -180,4 +182,6 @@ def load_policy_from_checkpoint(
     if chain_noise is not None:
         agent.config = dataclasses.replace(agent.config, eval_chain_noise=chain_noise)
     policy = agent_policy(agent, "eval", torch.Generator().manual_seed(seed), feasible_only)
-    return LoadedPolicy(policy, cfg.n_obj, cfg.n_bg, agent.eval_stochastic, f"{cfg.algo} ({path})", cfg.algo)
+    return LoadedPolicy(
+        policy, cfg.n_obj, cfg.n_bg, agent.eval_stochastic, f"{cfg.algo} ({path})", cfg.algo, cfg.goals
+    )

@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -177,6 +178,31 @@ def bad_targets(tmp_path):
     keys += " noise_schedule q_reduction stochastic training_command sha256"
     manifest = dict.fromkeys(keys.split(), 0) | {"format": "hydo-onnx/1", "obs_contract_version": 999}
     (model / "manifest.json").write_text(json.dumps(manifest))
+
+
+def test_goals_default_to_the_mode_the_runs_were_trained_on(tmp_path):
+    """A 6D model is scored on 6D goals without --goals; --goals overrides; mixed modes must choose."""
+    models = Path(__file__).resolve().parents[1] / "models"
+    six_d, planar = str(models / "hydo-cm-6d"), str(models / "hydo-cm-planar")
+
+    def episodes(*args):
+        js = tmp_path / "eval.json"
+        r = runner.invoke(app, ["eval", *args, "--objects", "wedge_00", "--episodes", "3", "--json", str(js)])
+        assert r.exit_code == 0, r.output
+        data = json.loads(js.read_text())
+        return data["goals"], [
+            (e["start_distance"], e["goal_tilt_deg"]) for e in data["runs"][0]["episodes_detail"]
+        ]
+
+    default_mode, default_eps = episodes(six_d)
+    assert default_mode == "6d" and default_eps == episodes(six_d, "--goals", "6d")[1]
+    planar_mode, planar_eps = episodes(six_d, "--goals", "planar")
+    assert planar_mode == "planar" and planar_eps != default_eps  # the flag wins over the manifest
+    assert all(tilt < 1e-3 for _, tilt in planar_eps) and any(tilt > 1 for _, tilt in default_eps)
+    assert episodes("heuristic")[0] == "planar" and episodes(planar)[0] == "planar"
+    mixed = hydo("eval", six_d, planar, "--objects", "wedge_00", "--episodes", "1")
+    assert mixed.returncode == 1 and "different goal modes" in mixed.stderr, mixed.stderr
+    assert len(mixed.stderr.strip().splitlines()) == 1 and "Traceback" not in mixed.stderr
 
 
 @pytest.mark.parametrize(
