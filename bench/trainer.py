@@ -1,11 +1,17 @@
-"""Env steps and gradient updates per hour of the real training loop: default vs one core, serial.
+"""Env steps, gradient updates and sample-gradients per hour of the real training loop.
 
-Runs ``hydo train`` twice for ``--seconds`` each, on the default config (6D goals unless told
-otherwise), in this order:
+Runs ``hydo train`` for ``--seconds`` each, on the default config (6D goals unless told otherwise):
 
 * **default**: as a user runs it (``--workers 2``: both cores, data-parallel, ``hydo_cli.trainer``);
 * **serial**: the same loop confined to one core (``--workers 1 --threads 1``, the process pinned to
-  CPU 0 with ``sched_setaffinity``), env steps and updates interleaved.
+  CPU 0 with ``sched_setaffinity``), env steps and updates interleaved;
+* with ``--baseline REV``: **baseline**, the default layout of another commit's code (checked out
+  into a temporary ``git worktree``), alternated with *default* ``--repeats`` times in the same
+  session, so that the two are compared on the same machine at the same moment (machines of this
+  class differ by ~1.8× in absolute speed). The serial layout is then left out.
+
+A *sample-gradient* is one transition's contribution to one critic update: updates × the run's
+``batch_size`` (summed over the workers).
 
 Rates are read from each run's ``metrics.jsonl`` between the first row with updates (learning has
 started) and the last one, so start-up and the random-action warm-up are not counted. Evaluation is
@@ -26,6 +32,7 @@ import argparse
 import json
 import os
 import platform
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -37,19 +44,43 @@ sys.path.insert(0, str(ROOT))
 
 from sim.atomic import atomic_write_text  # noqa: E402
 
-LAYOUTS = {"default": ["--workers", "2"], "serial": ["--workers", "1", "--threads", "1"]}
+LAYOUTS = {
+    "default": ["--workers", "2"],
+    "serial": ["--workers", "1", "--threads", "1"],
+    "baseline": ["--workers", "2"],
+}
+RATES = ("env_steps_per_hour", "updates_per_hour", "sample_gradients_per_hour")
 
 
-def run_loop(name: str, args: argparse.Namespace, folder: Path) -> dict:
-    """One ``hydo train`` of ``args.seconds``; its steady-state rates from ``metrics.jsonl``."""
-    toml = folder / f"{name}.toml"
+def checkout(rev: str, folder: Path) -> Path:
+    """``rev``'s tree in a detached worktree under ``folder`` (removed again by :func:`remove_checkout`)."""
+    path = folder / "baseline-src"
+    r = subprocess.run(
+        ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(path), rev],
+        capture_output=True,
+        text=True,
+    )
+    if r.returncode != 0:
+        raise SystemExit(f"bench/trainer.py: cannot check out --baseline {rev}: {r.stderr.strip()}")
+    return path
+
+
+def remove_checkout(path: Path) -> None:
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(path)], capture_output=True)
+
+
+def run_loop(name: str, args: argparse.Namespace, folder: Path, src: Path = ROOT, tag: str = "") -> dict:
+    """One ``hydo train`` of ``args.seconds`` with the code in ``src``; steady-state rates from
+    ``metrics.jsonl``."""
+    name_tag = f"{name}{tag}"
+    toml = folder / f"{name_tag}.toml"
     toml.write_text(
         f'goals = "{args.goals}"\nobjects = "{args.objects}"\nsteps = 1000000000\n'
         f"max_minutes = {args.seconds / 60}\neval_every = 0\neval_episodes = 1\n"
         f"checkpoint_every = 1000000000\nlog_every = {args.log_every}\n"
         + "".join(f"{line}\n" for line in args.set)
     )
-    run = folder / name
+    run = folder / name_tag
     cmd = [sys.executable, "-m", "hydo_cli.main", "train", "--config", str(toml), "--out", str(run)]
     cmd += LAYOUTS[name]
     pin = (
@@ -58,7 +89,8 @@ def run_loop(name: str, args: argparse.Namespace, folder: Path) -> dict:
         else None
     )
     t0 = time.perf_counter()
-    r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, preexec_fn=pin)
+    env = {**os.environ, "PYTHONPATH": str(src)}  # src's packages win over any installed copy
+    r = subprocess.run(cmd, cwd=src, capture_output=True, text=True, preexec_fn=pin, env=env)
     if r.returncode != 0:
         raise SystemExit(f"bench/trainer.py: {name} run failed:\n{r.stderr[-2000:]}")
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
@@ -70,6 +102,7 @@ def run_loop(name: str, args: argparse.Namespace, folder: Path) -> dict:
     a, b = learning[0], learning[-1]
     dt = b["wall_s"] - a["wall_s"]
     steps, updates = b["env_steps"] - a["env_steps"], b["updates"] - a["updates"]
+    batch_size = json.loads((run / "config.json").read_text())["batch_size"]
     return {
         "command": " ".join(cmd[2:]),
         "window_s": dt,
@@ -77,6 +110,8 @@ def run_loop(name: str, args: argparse.Namespace, folder: Path) -> dict:
         "updates": updates,
         "env_steps_per_hour": steps / dt * 3600,
         "updates_per_hour": updates / dt * 3600,
+        "batch_size": batch_size,
+        "sample_gradients_per_hour": updates * batch_size / dt * 3600,
         "updates_per_env_step": updates / steps,
         "total_wall_s": time.perf_counter() - t0,
     }
@@ -89,21 +124,51 @@ def main() -> None:
     ap.add_argument("--objects", default="train", help="object set of the runs")
     ap.add_argument("--log-every", type=int, default=200, help="env steps between metric rows")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra TOML line")
+    ap.add_argument(
+        "--baseline",
+        metavar="REV",
+        help="compare the default layout against this commit's code (a git revision) instead of serial",
+    )
+    ap.add_argument("--repeats", type=int, default=1, help="with --baseline: alternations of the two")
     ap.add_argument("--json", type=Path, help="write the results here")
     args = ap.parse_args()
+    if args.repeats < 1:
+        raise SystemExit("bench/trainer.py: --repeats must be at least 1")
 
     results: dict = {}
     with tempfile.TemporaryDirectory(prefix="hydo-bench-trainer-") as tmp:
-        for name in LAYOUTS:
-            results[name] = run_loop(name, args, Path(tmp))
-    d, s = results["default"], results["serial"]
+        if args.baseline:
+            src = checkout(args.baseline, Path(tmp))
+            try:
+                runs: dict[str, list[dict]] = {"baseline": [], "default": []}
+                for k in range(args.repeats):  # alternate, so slow spells of a shared machine hit both
+                    runs["baseline"].append(run_loop("baseline", args, Path(tmp), src, tag=f"-{k}"))
+                    runs["default"].append(run_loop("default", args, Path(tmp), tag=f"-{k}"))
+            finally:
+                remove_checkout(src)
+            for name, rs in runs.items():
+                results[name] = {
+                    **rs[0],
+                    **{key: statistics.median(r[key] for r in rs) for key in RATES},
+                    "window_s": sum(r["window_s"] for r in rs),
+                }
+            results["runs"] = runs
+            names, ref = ("baseline", "default"), "baseline"
+        else:
+            for name in ("default", "serial"):
+                results[name] = run_loop(name, args, Path(tmp))
+            names, ref = ("default", "serial"), "serial"
+    d, s = results["default"], results[ref]
     results["env_steps_speedup"] = d["env_steps_per_hour"] / s["env_steps_per_hour"]
     results["updates_speedup"] = d["updates_per_hour"] / s["updates_per_hour"]
+    results["sample_gradients_speedup"] = d["sample_gradients_per_hour"] / s["sample_gradients_per_hour"]
     results["meta"] = {
         "seconds": args.seconds,
         "goals": args.goals,
         "objects": args.objects,
         "set": args.set,
+        "baseline": args.baseline,
+        "repeats": args.repeats if args.baseline else 1,
         "cpus": os.cpu_count(),
         "platform": platform.platform(),
     }
@@ -111,20 +176,26 @@ def main() -> None:
     from rich.console import Console
     from rich.table import Table
 
-    table = Table(title=f"training loop, {args.goals} goals, {args.seconds:.0f} s per layout")
-    for col in ("layout", "env steps/h", "updates/h", "updates/env step", "window s"):
+    table = Table(title=f"training loop, {args.goals} goals, {args.seconds:.0f} s per run")
+    for col in ("layout", "env steps/h", "updates/h", "sample-gradients/h", "updates/env step", "window s"):
         table.add_column(col, justify="right")
-    for name in LAYOUTS:
+    for name in names:
         r = results[name]
         table.add_row(
-            name,
+            name + (f" ({args.baseline})" if name == "baseline" else ""),
             f"{r['env_steps_per_hour']:,.0f}",
             f"{r['updates_per_hour']:,.0f}",
+            f"{r['sample_gradients_per_hour']:,.0f}",
             f"{r['updates_per_env_step']:.3f}",
             f"{r['window_s']:.0f}",
         )
     table.add_row(
-        "speedup", f"{results['env_steps_speedup']:.2f}×", f"{results['updates_speedup']:.2f}×", "", ""
+        "speedup",
+        f"{results['env_steps_speedup']:.2f}×",
+        f"{results['updates_speedup']:.2f}×",
+        f"{results['sample_gradients_speedup']:.2f}×",
+        "",
+        "",
     )
     Console().print(table)
     if args.json:

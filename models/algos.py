@@ -595,14 +595,14 @@ class HybridAgent:
         noise_shape = self.motion_policy.noise_shape
         out: dict[str, float] = {}
 
-        # 1. Encode s once with grad. The per-point head runs with grad on the executed points only
-        #    and without grad on every object point (the actor's detached features).
-        ctx = self.encoder.encode_context(
-            batch.points, batch.features, batch.normals
-        )  # local (B, N_obj, H), context (B, H)
-        f_taken = self.encoder.head(ctx.local[rows, batch.index], ctx.context)  # (B, D)
-        with torch.no_grad():
-            f_obj = self.encoder.head(ctx.local, ctx.context[:, None])  # (B, N_obj, D), detached
+        # 1. Encode s once. Only the executed points' features carry grad, and only the rows that
+        #    gradient can reach are differentiated (``encode_for_update``: exact); every object
+        #    point's features are computed without grad for the actor.
+        f_taken, ctx = self.encoder.encode_for_update(
+            batch.points, batch.features, batch.normals, batch.index
+        )  # (B, D) with grad; detached local (B, N_obj, H), context (B, H)
+        with torch.no_grad():  # (B, N_obj, D), detached; only the actor reads it
+            f_obj = self.encoder.head(ctx.local, ctx.context[:, None]) if actor_step else None
         noise_s = self._randn(*noise_shape(b, n_obj)) if actor_step else None  # (B, N_obj, S, 3)
 
         # 2. Target: exact expectation over all object points of s' and a motion sampled at each.

@@ -52,3 +52,32 @@ def test_normals_input_variant():
         enc(points, features, normals[:, :8])
     plain = PointEncoder(16, 8, hidden=32, global_dim=32)
     assert torch.equal(plain(points, features), plain(points, features, normals))
+
+
+@pytest.mark.parametrize("n_bg", [8, 0])
+def test_encode_for_update_matches_the_dense_gradient(n_bg):
+    """The update's sparse encoding (only the executed point and the max-pools' argmax rows are
+    differentiated) gives the same executed-point features, the same detached per-point context and
+    the same parameter gradient as differentiating every row."""
+    torch.manual_seed(0)
+    enc = PointEncoder(16, n_bg, hidden=32, global_dim=32, out_dim=24, normals=True)
+    points, features = random_obs(5, 16, n_bg)
+    normals = torch.nn.functional.normalize(torch.randn(5, 16, 3), dim=-1)
+    index = torch.randint(0, 16, (5,))
+    weight = torch.randn(5, 24)  # a loss that reaches every output feature
+
+    ctx = enc.encode_context(points, features, normals)
+    dense = enc.head(ctx.local[torch.arange(5), index], ctx.context)
+    (dense * weight).sum().backward()
+    dense_grads = [p.grad.clone() for p in enc.parameters()]
+    enc.zero_grad()
+
+    sparse, sparse_ctx = enc.encode_for_update(points, features, normals, index)
+    (sparse * weight).sum().backward()
+    assert torch.allclose(sparse, dense, atol=1e-6)
+    assert not sparse_ctx.local.requires_grad and not sparse_ctx.context.requires_grad
+    assert torch.allclose(sparse_ctx.local, ctx.local, atol=1e-6)
+    assert torch.allclose(sparse_ctx.context, ctx.context, atol=1e-6)
+    for p, g in zip(enc.parameters(), dense_grads, strict=True):
+        assert p.grad is not None and torch.allclose(p.grad, g, atol=1e-5), p.shape
+    assert any(g.abs().sum() > 0 for g in dense_grads)
