@@ -8,8 +8,10 @@ Run directory (``--out``)::
     metrics.jsonl    one line per log interval: env steps, updates, wall time, losses, temperatures
     eval.jsonl       periodic evaluation on held-out episodes (success rate, return)
     checkpoint.pt    latest checkpoint (atomic), also written at the end and on Ctrl-C
-    replay.npz       worker 0's replay shard at the last checkpoint (replay-1.npz, worker-1.pt:
-                     worker 1's shard and RNG states), so --resume continues where it stopped
+    replay.npz       a snapshot of worker 0's replay shard, and replay.sNNNNN.npz: what each later
+                     checkpoint added (a new snapshot once those hold a shard's capacity), so a
+                     checkpoint writes ~1 % of the shard; replay-1.*, worker-1.pt: worker 1's
+                     shard and RNG states. --resume rebuilds the shards and continues where it stopped
 
 ``--resume`` continues the step counter, networks, optimisers, temperatures, RNG and replay buffer;
 episodes in flight at the cut are restarted, and log rows written after the checkpoint are dropped.

@@ -77,9 +77,6 @@ def load_replay(path: str | os.PathLike, n_obj: int, n_bg: int):
     silently short buffer.
     """
     import ast
-    import zlib
-
-    import numpy as np
 
     from models.replay import REQUIRED_ARRAYS, ReplayBuffer
 
@@ -88,17 +85,7 @@ def load_replay(path: str | os.PathLike, n_obj: int, n_bg: int):
     def bad(reason: str) -> CheckpointError:
         return CheckpointError(f"replay {path}: {reason}; the run cannot resume with it")
 
-    if not path.is_file():
-        raise bad("no such file")
-    try:
-        z = np.load(path, allow_pickle=False)
-        if not isinstance(z, np.lib.npyio.NpzFile):
-            raise bad("a single .npy array, not an .npz archive")
-        with z:  # read every member now: a truncated member fails here, with the file's name
-            arrays = {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
-        what = "empty file (0 bytes)" if path.stat().st_size == 0 else "truncated or not an .npz archive"
-        raise bad(f"{what} ({type(e).__name__})") from None
+    arrays = _read_npz(path, bad)
     missing = [k for k in REQUIRED_ARRAYS if k not in arrays]
     if missing:
         raise bad(f"lacks {missing} (not a hydo replay?)")
@@ -128,4 +115,74 @@ def load_replay(path: str | os.PathLike, n_obj: int, n_bg: int):
         ast.literal_eval(bytes(arrays["rng"]).decode())
         return ReplayBuffer.load(path)
     except (ValueError, SyntaxError, TypeError, KeyError, UnicodeDecodeError, MemoryError) as e:
+        raise bad(f"unreadable contents ({type(e).__name__})") from None
+
+
+def _read_npz(path: Path, bad) -> dict:
+    """Every member of the ``.npz`` at ``path`` (no pickles), or ``bad(reason)`` raised."""
+    import zlib
+
+    import numpy as np
+
+    if not path.is_file():
+        raise bad("no such file")
+    try:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise bad("a single .npy array, not an .npz archive")
+        with z:  # read every member now: a truncated member fails here, with the file's name
+            return {k: np.asarray(z[k]) for k in z.files}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
+        what = "empty file (0 bytes)" if path.stat().st_size == 0 else "truncated or not an .npz archive"
+        raise bad(f"{what} ({type(e).__name__})") from None
+
+
+def apply_replay_segment(buffer, path: str | os.PathLike) -> None:
+    """Check the replay segment at ``path`` (``ReplayBuffer.save_segment``) against ``buffer``'s layout
+    and apply it; a damaged or foreign one raises :class:`CheckpointError`, one line naming the file."""
+    import ast
+
+    from models.replay import SEGMENT_ARRAYS, ReplayBuffer
+
+    path = Path(path)
+
+    def bad(reason: str) -> CheckpointError:
+        return CheckpointError(f"replay segment {path}: {reason}; the run cannot resume with it")
+
+    arrays = _read_npz(path, bad)
+    missing = [k for k in SEGMENT_ARRAYS if k not in arrays]
+    if missing:
+        raise bad(f"lacks {missing} (not a hydo replay segment?)")
+    meta, slots, links = arrays["meta"], arrays["slots"], arrays["next_slot"]
+    if meta.shape != (5,) or meta.dtype.kind not in "iu":
+        raise bad(f"`meta` must be 5 integers, got {meta.dtype} of shape {meta.shape}")
+    capacity, m_obj, m_bg, pos, full = (int(v) for v in meta)
+    if (capacity, m_obj, m_bg) != (buffer.capacity, buffer.n_obj, buffer.n_bg):
+        raise bad(
+            f"is for a buffer of {capacity} transitions at {m_obj}+{m_bg} points, the run's holds "
+            f"{buffer.capacity} at {buffer.n_obj}+{buffer.n_bg}"
+        )
+    if not 0 <= pos < capacity or full not in (0, 1):
+        raise bad(f"`meta` position {pos} / full {full} is outside the buffer")
+    if slots.ndim != 1 or slots.dtype.kind not in "iu" or len(slots) > capacity:
+        raise bad(f"`slots` must be at most {capacity} integers, got {slots.dtype} of shape {slots.shape}")
+    if len(slots) and not (0 <= slots.min() and slots.max() < capacity):
+        raise bad(f"`slots` must lie in [0, {capacity})")
+    if links.shape != (capacity,) or links.dtype.kind not in "iu" or (links.size and links.min() < -1):
+        raise bad(f"`next_slot` must be {capacity} slots or -1")
+    if links.size and links.max() >= capacity:
+        raise bad(f"`next_slot` must lie in [-1, {capacity})")
+    layout = ReplayBuffer(1, buffer.n_obj, buffer.n_bg)
+    for k in SEGMENT_ARRAYS[5:]:
+        a, want = arrays[k], getattr(layout, k)
+        if a.shape != (len(slots), *want.shape[1:]):
+            raise bad(f"`{k}` has shape {a.shape}, expected {(len(slots), *want.shape[1:])}")
+        if a.dtype.kind != want.dtype.kind and not (a.dtype.kind in "iu" and want.dtype.kind in "iu"):
+            raise bad(f"`{k}` is {a.dtype}, expected {want.dtype}")
+    if len(slots) and not (0 <= arrays["index"].min() and arrays["index"].max() < buffer.n_obj):
+        raise bad(f"`index` must lie in [0, {buffer.n_obj}) (object points)")
+    try:
+        ast.literal_eval(bytes(arrays["rng"]).decode())
+        buffer.apply_segment(arrays)
+    except (ValueError, SyntaxError, TypeError, KeyError, UnicodeDecodeError) as e:
         raise bad(f"unreadable contents ({type(e).__name__})") from None

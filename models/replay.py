@@ -22,7 +22,11 @@ Memory (N = N_obj + N_bg points): two clouds of ``N × (3 + 4)`` float16 and the
 i.e. ``28·N + 12·N_obj + 127`` bytes; 128 + 128 points → 8.8 kB, 200k transitions → 1.6 GiB.
 
 Resume: :meth:`save` / :meth:`load` write the filled part and the sampling RNG state to one ``.npz``
-(atomically), so a resumed run samples exactly what it would have sampled.
+(atomically), so a resumed run samples exactly what it would have sampled. A full shard is ~0.9 GB
+and took 5–11 s to write here, at every checkpoint; so a training run writes one snapshot, then
+only what each checkpoint interval added (:meth:`save_segment`: ~1 % of that), and a new snapshot
+once the segments since the last one hold a capacity's worth. :meth:`apply_segment` replays a
+segment onto a loaded snapshot, exactly.
 """
 
 from __future__ import annotations
@@ -110,6 +114,10 @@ SAVED_ARRAYS = (
     "next_slot",
 )
 REQUIRED_ARRAYS = ("meta", "rng", *SAVED_ARRAYS[:9])
+#: A segment (:meth:`ReplayBuffer.save_segment`) holds ``slots`` and every saved array at those
+#: slots, except ``next_slot``, which it holds whole (a new transition links the episode's previous
+#: one, which may sit in an older segment).
+SEGMENT_ARRAYS = ("meta", "rng", "slots", "streams", "next_slot", *SAVED_ARRAYS[:-1])
 
 
 class ReplayBuffer:
@@ -170,6 +178,8 @@ class ReplayBuffer:
         self.has_poses = np.zeros((c,), dtype=np.bool_)
         self.next_slot = np.full((c,), -1, dtype=np.int32)
         self._last_slot: dict[int, int] = {}  # stream (env) id → its latest slot, while its episode runs
+        self.unsaved = 0  # transitions added since the last save / save_segment / load (≤ capacity)
+        self.snapshot_seq: int | None = None  # ``seq`` of the snapshot this buffer was loaded from
 
     @property
     def bytes_per_transition(self) -> int:
@@ -251,6 +261,7 @@ class ReplayBuffer:
                     self._last_slot[k] = slot
         self.full = self.full or self.pos + e >= self.capacity
         self.pos = int((self.pos + e) % self.capacity)
+        self.unsaved = min(self.unsaved + e, self.capacity)
 
     def rewind(self, pos: int, full: bool) -> None:
         """Back to the state a checkpoint recorded (``pos``, ``full``): forget what was added after it,
@@ -263,6 +274,7 @@ class ReplayBuffer:
             self.next_slot[dropped] = -1
             self.next_slot[np.isin(self.next_slot, dropped)] = -1
         self.pos, self.full = int(pos), bool(full)
+        self.unsaved = max(0, self.unsaved - ahead)
         self._last_slot.clear()
 
     def sample(self, batch_size: int, relabel_future: float = 0.0) -> ReplayBatch:
@@ -359,20 +371,60 @@ class ReplayBuffer:
 
     _ARRAYS = SAVED_ARRAYS
 
-    def save(self, path: str | os.PathLike) -> None:
-        """Write the stored transitions and the RNG state to ``path`` (``.npz``), atomically."""
+    def _state_arrays(self) -> dict[str, np.ndarray]:
+        """``meta``, ``rng`` and ``streams``: what a snapshot and a segment both end on."""
+        return {
+            "meta": np.array(
+                [self.capacity, self.n_obj, self.n_bg, self.pos, int(self.full)], dtype=np.int64
+            ),
+            "rng": np.frombuffer(repr(self.rng.bit_generator.state).encode(), dtype=np.uint8),
+            "streams": np.array(sorted(self._last_slot.items()), dtype=np.int64).reshape(-1, 2),
+        }
+
+    def save(self, path: str | os.PathLike, seq: int | None = None) -> None:
+        """Write the stored transitions and the RNG state to ``path`` (``.npz``), atomically.
+
+        ``seq``: the number of the training run's save this snapshot is (recorded as ``seq``, so a
+        loader knows which segments it already contains)."""
         path = Path(path)
         n = len(self)
-        meta = np.array([self.capacity, self.n_obj, self.n_bg, self.pos, int(self.full)], dtype=np.int64)
-        rng_state = np.frombuffer(repr(self.rng.bit_generator.state).encode(), dtype=np.uint8)
         arrays = {k: getattr(self, k)[:n] for k in self._ARRAYS}
-        streams = np.array(sorted(self._last_slot.items()), dtype=np.int64).reshape(-1, 2)
+        extra = {} if seq is None else {"seq": np.array(seq, dtype=np.int64)}
+        state = self._state_arrays()
         atomic_write(
-            path,
-            lambda f: np.savez(
-                f, meta=meta, rng=rng_state, streams=streams, threshold=self.success_threshold, **arrays
-            ),
+            path, lambda f: np.savez(f, threshold=self.success_threshold, **state, **extra, **arrays)
         )
+        self.unsaved = 0
+
+    def save_segment(self, path: str | os.PathLike) -> int:
+        """Write what was added since the last save (the ``unsaved`` slots before ``pos``), the whole
+        ``next_slot`` and the RNG state to ``path`` (``.npz``), atomically. Returns the transitions
+        written. Applying it (:meth:`apply_segment`) to the buffer as it was at the last save gives
+        this buffer exactly."""
+        slots = (self.pos - self.unsaved + np.arange(self.unsaved)) % self.capacity
+        arrays = {k: getattr(self, k)[slots] for k in self._ARRAYS if k != "next_slot"}
+        state = self._state_arrays()
+        atomic_write(
+            Path(path),
+            lambda f: np.savez(f, slots=slots.astype(np.int64), next_slot=self.next_slot, **state, **arrays),
+        )
+        written, self.unsaved = self.unsaved, 0
+        return written
+
+    def apply_segment(self, arrays: dict[str, np.ndarray]) -> None:
+        """Replay a segment's arrays (read from a :meth:`save_segment` file) onto this buffer."""
+        import ast
+
+        slots = arrays["slots"]
+        for k in self._ARRAYS:
+            if k != "next_slot" and k in arrays:
+                getattr(self, k)[slots] = arrays[k]
+        self.next_slot[:] = arrays["next_slot"]
+        _, _, _, pos, full = (int(v) for v in arrays["meta"])
+        self.pos, self.full = pos, bool(full)
+        self._last_slot = {int(k): int(v) for k, v in arrays["streams"]}
+        self.rng.bit_generator.state = ast.literal_eval(bytes(arrays["rng"]).decode())
+        self.unsaved = 0
 
     @classmethod
     def load(cls, path: str | os.PathLike, device: str = "cpu") -> ReplayBuffer:
@@ -391,4 +443,5 @@ class ReplayBuffer:
                 buf._last_slot = {int(k): int(v) for k, v in data["streams"]}
             buf.pos, buf.full = pos, bool(full)
             buf.rng.bit_generator.state = ast.literal_eval(bytes(data["rng"]).decode())
+            buf.snapshot_seq = int(data["seq"]) if "seq" in data else None
         return buf

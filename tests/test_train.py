@@ -104,3 +104,51 @@ def test_every_shipped_config_resolves():
     for path in files:
         cfg = resolve_config(None, path, {"algo": "hydo-cm"})
         agent_config(cfg)  # raises on an unknown or invalid agent field
+
+
+def test_replay_is_checkpointed_as_a_snapshot_and_segments(tmp_path):
+    """With a small replay and frequent checkpoints, a run writes a snapshot and then segments of what
+    each interval added (a new snapshot once they hold a shard's capacity), keeps only the files its
+    last checkpoint needs, and resumes from them on both workers."""
+    import numpy as np
+    import torch
+
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text(
+        TINY.replace("checkpoint_every = 24", "checkpoint_every = 4").replace(
+            "threads = 1\n", "threads = 1\nbuffer_size = 32\n"
+        )
+    )
+    run = tmp_path / "run"
+    r = hydo("train", "--config", str(cfg), "--seed", "1", "--steps", "40", "--out", str(run))
+    assert r.returncode == 0, r.stderr[-2000:]
+
+    def replay_files(stem):
+        return sorted(p.name for p in run.glob(f"{stem}.s*.npz"))
+
+    ckpt = torch.load(run / "checkpoint.pt", weights_only=True)["payload"]
+    worker = torch.load(run / "worker-1.pt", weights_only=True)["payload"]
+    for stem, state in (("replay", ckpt), ("replay-1", worker)):
+        with np.load(run / f"{stem}.npz") as z:
+            snap = int(z["seq"])
+        # 10 checkpoints of 4 env steps + the final one; a shard holds 16, each checkpoint adds 2
+        assert state["replay_seq"] == 11 and 1 < snap < state["replay_seq"]
+        assert replay_files(stem) == [
+            f"{stem}.s{k:05d}.npz" for k in range(snap + 1, state["replay_seq"] + 1)
+        ]
+        assert 0 <= state["replay_logged"] <= 16
+
+    r = hydo("train", "--resume", str(run), "--steps", "56")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert _lines(run / "metrics.jsonl")[-1]["env_steps"] >= 56
+    assert torch.load(run / "checkpoint.pt", weights_only=True)["payload"]["replay_seq"] > 11
+
+    # a segment the checkpoint needs is gone: --resume names it and refuses (worker 1 is checked first)
+    worker = torch.load(run / "worker-1.pt", weights_only=True)["payload"]
+    with np.load(run / "replay-1.npz") as z:
+        snap = int(z["seq"])
+    assert worker["replay_seq"] > snap
+    (run / f"replay-1.s{worker['replay_seq']:05d}.npz").unlink()
+    r = hydo("train", "--resume", str(run), "--steps", "64")
+    assert r.returncode == 1 and "replay-1.s" in r.stderr and "is missing" in r.stderr
+    assert "Traceback" not in r.stderr

@@ -261,3 +261,65 @@ def test_rewind_forgets_what_came_after_the_checkpoint_and_ends_episodes():
     assert len(buf) == 2 and buf.next_slot[1] == -1 and buf.next_slot[0] == 1
     buf.add(Transition(**ep[3]))  # a resumed run's first transition starts a new episode
     assert buf.next_slot[1] == -1 and len(buf) == 3
+
+
+def _same_buffer(a: ReplayBuffer, b: ReplayBuffer) -> None:
+    for k in ReplayBuffer._ARRAYS:
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
+    assert (a.pos, a.full, a._last_slot) == (b.pos, b.full, b._last_slot)
+    assert a.rng.bit_generator.state == b.rng.bit_generator.state
+
+
+def test_snapshot_plus_segments_rebuilds_the_buffer_exactly(tmp_path):
+    """A snapshot, then segments of what each interval added (wrapping the ring twice, with episodes
+    linked across segments for hindsight relabelling): snapshot + segments in order == the buffer,
+    contents, links, position, open episodes and sampling RNG included."""
+    from models.checkpoint import apply_replay_segment, load_replay
+
+    rng = np.random.default_rng(3)
+    local = rng.uniform(-0.03, 0.03, (8, 3))
+    buf = ReplayBuffer(10, 8, 4, seed=5)
+    episodes = [_episode(rng, local, 4, _pose(rng))[0] for _ in range(8)]
+    rows = [row for ep in episodes for row in ep]
+    buf.add(Transition(**rows[0]))
+    buf.save(tmp_path / "replay.npz", seq=1)
+    segments = []
+    for k, start in enumerate(range(1, len(rows), 3)):  # three transitions per checkpoint interval
+        for row in rows[start : start + 3]:
+            buf.add(Transition(**row))
+        buf.sample(4, relabel_future=0.5)  # sampling moves the RNG the segment must carry
+        segments.append(tmp_path / f"replay.s{k + 2:05d}.npz")
+        assert buf.save_segment(segments[-1]) == len(rows[start : start + 3])
+    assert buf.full and buf.unsaved == 0
+
+    back = load_replay(tmp_path / "replay.npz", 8, 4)
+    assert back.snapshot_seq == 1
+    for path in segments:
+        apply_replay_segment(back, path)
+    _same_buffer(back, buf)
+    a, b = buf.sample(8, relabel_future=0.5), back.sample(8, relabel_future=0.5)
+    np.testing.assert_array_equal(a.next_features.numpy(), b.next_features.numpy())
+
+
+def test_a_damaged_or_foreign_segment_is_refused_in_one_line(tmp_path):
+    from models.checkpoint import CheckpointError, apply_replay_segment
+
+    rng = np.random.default_rng(4)
+    buf = ReplayBuffer(6, 4, 4, seed=0)
+    buf.add(Transition(**transition(rng)))
+    good = tmp_path / "replay.s00002.npz"
+    buf.save_segment(good)
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(good.read_bytes()[:200])
+    with pytest.raises(CheckpointError, match=r"replay segment .*cut.npz: truncated"):
+        apply_replay_segment(ReplayBuffer(6, 4, 4), cut)
+    with pytest.raises(CheckpointError, match=r"is for a buffer of 6 transitions at 4\+4 points"):
+        apply_replay_segment(ReplayBuffer(8, 4, 4), good)
+    with pytest.raises(CheckpointError, match="no such file"):
+        apply_replay_segment(ReplayBuffer(6, 4, 4), tmp_path / "missing.npz")
+    with np.load(good) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["slots"] = np.array([7])
+    np.savez(tmp_path / "bad-slots.npz", **arrays)
+    with pytest.raises(CheckpointError, match=r"`slots` must lie in \[0, 6\)"):
+        apply_replay_segment(ReplayBuffer(6, 4, 4), tmp_path / "bad-slots.npz")
