@@ -113,7 +113,7 @@ def load_replay(path: str | os.PathLike, n_obj: int, n_bg: int):
         raise bad(f"`index` must lie in [0, {n_obj}) (object points)")
     try:
         ast.literal_eval(bytes(arrays["rng"]).decode())
-        return ReplayBuffer.load(path)
+        return ReplayBuffer.from_arrays(arrays)  # the members read once, above
     except (ValueError, SyntaxError, TypeError, KeyError, UnicodeDecodeError, MemoryError) as e:
         raise bad(f"unreadable contents ({type(e).__name__})") from None
 

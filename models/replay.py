@@ -429,19 +429,24 @@ class ReplayBuffer:
     @classmethod
     def load(cls, path: str | os.PathLike, device: str = "cpu") -> ReplayBuffer:
         """Rebuild a buffer written by :meth:`save` (same capacity, contents and RNG state)."""
+        with np.load(path) as data:
+            return cls.from_arrays(data, device=device)
+
+    @classmethod
+    def from_arrays(cls, data, device: str = "cpu") -> ReplayBuffer:
+        """Rebuild a buffer from a :meth:`save` file's members (an open ``NpzFile`` or a dict of them)."""
         import ast
 
-        with np.load(path) as data:
-            capacity, n_obj, n_bg, pos, full = (int(v) for v in data["meta"])
-            threshold = float(data["threshold"]) if "threshold" in data else 0.03
-            buf = cls(capacity, n_obj, n_bg, device=device, success_threshold=threshold)
-            n = data["points"].shape[0]
-            for k in cls._ARRAYS:
-                if k in data:  # older replays lack the pose (and normal) arrays
-                    getattr(buf, k)[:n] = data[k]
-            if "streams" in data:
-                buf._last_slot = {int(k): int(v) for k, v in data["streams"]}
-            buf.pos, buf.full = pos, bool(full)
-            buf.rng.bit_generator.state = ast.literal_eval(bytes(data["rng"]).decode())
-            buf.snapshot_seq = int(data["seq"]) if "seq" in data else None
+        capacity, n_obj, n_bg, pos, full = (int(v) for v in data["meta"])
+        threshold = float(data["threshold"]) if "threshold" in data else 0.03
+        buf = cls(capacity, n_obj, n_bg, device=device, success_threshold=threshold)
+        n = data["points"].shape[0]
+        for k in cls._ARRAYS:
+            if k in data:  # older replays lack the pose (and normal) arrays
+                getattr(buf, k)[:n] = data[k]
+        if "streams" in data:
+            buf._last_slot = {int(k): int(v) for k, v in data["streams"]}
+        buf.pos, buf.full = pos, bool(full)
+        buf.rng.bit_generator.state = ast.literal_eval(bytes(data["rng"]).decode())
+        buf.snapshot_seq = int(data["seq"]) if "seq" in data else None
         return buf

@@ -14,6 +14,10 @@ OLD_RUN = ROOT / "tests" / "data" / "old-run-v0"  # a tiny run with metrics.json
 
 CASES = {
     "curves.py": ([str(OLD_RUN)], lambda d: d),
+    "checkpoint.py": (
+        ["--capacity", "200", "--interval", "20", "--segments", "3", "--n-obj", "16", "--n-bg", "16"],
+        lambda d: d["snapshot_s"] > 0 and d["segment_s"] > 0 and d["segment_mb"] < d["shard_mb"],
+    ),
     "learner.py": (["--algos", "hydo-cm", "--seconds", "1", "--threads", "1"], lambda d: d),
     "inference.py": (["--runs", "3"], lambda d: d["ort_ms_median"] > 0),
     "lookahead.py": (["--candidates", "4", "--episodes", "1"], lambda d: "C=4" in d),
