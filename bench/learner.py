@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from models.algos import ALGOS, AgentConfig, HybridAgent  # noqa: E402
-from models.perf import configure_cpu  # noqa: E402
+from models.perf import configure_cpu, native_bf16  # noqa: E402
 from models.replay import ReplayBuffer, Transition  # noqa: E402
 
 
@@ -151,6 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     cpu = configure_cpu(args.threads)
+    if args.bf16 and native_bf16() is None:
+        print("note: this CPU has no native bf16 (no amx_bf16 / avx512_bf16): autocast emulates it", flush=True)
     overrides = parse_overrides(args.set)
     batch_sizes = [int(x) for x in args.batch_sizes.split(",")]
     results: dict = {}
@@ -194,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
         "overrides": overrides,
         "machine": platform.processor() or platform.machine(),
         "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "native_bf16": native_bf16(),
         "python": platform.python_version(),
     }
     try:

@@ -86,13 +86,7 @@ def load_replay(path: str | os.PathLike, n_obj: int, n_bg: int):
         return CheckpointError(f"replay {path}: {reason}; the run cannot resume with it")
 
     arrays = _read_npz(path, bad)
-    missing = [k for k in REQUIRED_ARRAYS if k not in arrays]
-    if missing:
-        raise bad(f"lacks {missing} (not a hydo replay?)")
-    meta = arrays["meta"]
-    if meta.shape != (5,) or meta.dtype.kind not in "iu":
-        raise bad(f"`meta` must be 5 integers, got {meta.dtype} of shape {meta.shape}")
-    capacity, m_obj, m_bg, pos, full = (int(v) for v in meta)
+    capacity, m_obj, m_bg, pos, full = _check_members(arrays, REQUIRED_ARRAYS, "replay", bad)
     if (m_obj, m_bg) != (n_obj, n_bg):
         raise bad(f"holds {m_obj}+{m_bg} points per observation, the run's config says {n_obj}+{n_bg}")
     n = len(arrays["points"]) if arrays["points"].ndim else -1
@@ -100,8 +94,33 @@ def load_replay(path: str | os.PathLike, n_obj: int, n_bg: int):
         raise bad(
             f"`meta` (capacity {capacity}, position {pos}, full {full}) disagrees with {n} stored transitions"
         )
+    _check_layout(arrays, ReplayBuffer._ARRAYS, n, n_obj, n_bg, bad)
+    try:
+        ast.literal_eval(bytes(arrays["rng"]).decode())
+        return ReplayBuffer.from_arrays(arrays)  # the members read once, above
+    except (ValueError, SyntaxError, TypeError, KeyError, UnicodeDecodeError, MemoryError) as e:
+        raise bad(f"unreadable contents ({type(e).__name__})") from None
+
+
+def _check_members(arrays: dict, required, what: str, bad) -> tuple[int, int, int, int, int]:
+    """The ``required`` members are there and ``meta`` is 5 integers: ``(capacity, n_obj, n_bg, pos,
+    full)``."""
+    missing = [k for k in required if k not in arrays]
+    if missing:
+        raise bad(f"lacks {missing} (not a hydo {what}?)")
+    meta = arrays["meta"]
+    if meta.shape != (5,) or meta.dtype.kind not in "iu":
+        raise bad(f"`meta` must be 5 integers, got {meta.dtype} of shape {meta.shape}")
+    return tuple(int(v) for v in meta)
+
+
+def _check_layout(arrays: dict, keys, n: int, n_obj: int, n_bg: int, bad) -> None:
+    """Each of ``keys`` present in ``arrays`` holds ``n`` rows of the buffer's own per-transition shape
+    and dtype kind, and ``index`` lies among the object points."""
+    from models.replay import ReplayBuffer
+
     layout = ReplayBuffer(1, n_obj, n_bg)  # the buffer's own per-transition shapes and dtype kinds
-    for k in ReplayBuffer._ARRAYS:
+    for k in keys:
         if k not in arrays:
             continue
         a, want = arrays[k], getattr(layout, k)
@@ -111,11 +130,6 @@ def load_replay(path: str | os.PathLike, n_obj: int, n_bg: int):
             raise bad(f"`{k}` is {a.dtype}, expected {want.dtype}")
     if n and not (0 <= arrays["index"].min() and arrays["index"].max() < n_obj):
         raise bad(f"`index` must lie in [0, {n_obj}) (object points)")
-    try:
-        ast.literal_eval(bytes(arrays["rng"]).decode())
-        return ReplayBuffer.from_arrays(arrays)  # the members read once, above
-    except (ValueError, SyntaxError, TypeError, KeyError, UnicodeDecodeError, MemoryError) as e:
-        raise bad(f"unreadable contents ({type(e).__name__})") from None
 
 
 def _read_npz(path: Path, bad) -> dict:
@@ -142,7 +156,7 @@ def apply_replay_segment(buffer, path: str | os.PathLike) -> None:
     and apply it; a damaged or foreign one raises :class:`CheckpointError`, one line naming the file."""
     import ast
 
-    from models.replay import SEGMENT_ARRAYS, ReplayBuffer
+    from models.replay import SEGMENT_ARRAYS
 
     path = Path(path)
 
@@ -150,13 +164,8 @@ def apply_replay_segment(buffer, path: str | os.PathLike) -> None:
         return CheckpointError(f"replay segment {path}: {reason}; the run cannot resume with it")
 
     arrays = _read_npz(path, bad)
-    missing = [k for k in SEGMENT_ARRAYS if k not in arrays]
-    if missing:
-        raise bad(f"lacks {missing} (not a hydo replay segment?)")
-    meta, slots, links = arrays["meta"], arrays["slots"], arrays["next_slot"]
-    if meta.shape != (5,) or meta.dtype.kind not in "iu":
-        raise bad(f"`meta` must be 5 integers, got {meta.dtype} of shape {meta.shape}")
-    capacity, m_obj, m_bg, pos, full = (int(v) for v in meta)
+    capacity, m_obj, m_bg, pos, full = _check_members(arrays, SEGMENT_ARRAYS, "replay segment", bad)
+    slots, links = arrays["slots"], arrays["next_slot"]
     if (capacity, m_obj, m_bg) != (buffer.capacity, buffer.n_obj, buffer.n_bg):
         raise bad(
             f"is for a buffer of {capacity} transitions at {m_obj}+{m_bg} points, the run's holds "
@@ -172,15 +181,7 @@ def apply_replay_segment(buffer, path: str | os.PathLike) -> None:
         raise bad(f"`next_slot` must be {capacity} slots or -1")
     if links.size and links.max() >= capacity:
         raise bad(f"`next_slot` must lie in [-1, {capacity})")
-    layout = ReplayBuffer(1, buffer.n_obj, buffer.n_bg)
-    for k in SEGMENT_ARRAYS[5:]:
-        a, want = arrays[k], getattr(layout, k)
-        if a.shape != (len(slots), *want.shape[1:]):
-            raise bad(f"`{k}` has shape {a.shape}, expected {(len(slots), *want.shape[1:])}")
-        if a.dtype.kind != want.dtype.kind and not (a.dtype.kind in "iu" and want.dtype.kind in "iu"):
-            raise bad(f"`{k}` is {a.dtype}, expected {want.dtype}")
-    if len(slots) and not (0 <= arrays["index"].min() and arrays["index"].max() < buffer.n_obj):
-        raise bad(f"`index` must lie in [0, {buffer.n_obj}) (object points)")
+    _check_layout(arrays, SEGMENT_ARRAYS[5:], len(slots), buffer.n_obj, buffer.n_bg, bad)
     try:
         ast.literal_eval(bytes(arrays["rng"]).decode())
         buffer.apply_segment(arrays)

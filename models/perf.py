@@ -41,6 +41,19 @@ def retain_freed_memory(mmap_threshold: int = 1 << 30, trim_threshold: int = (1 
     return ok
 
 
+def native_bf16() -> str | None:
+    """The CPU's native bf16 matrix instructions, from ``/proc/cpuinfo``: "amx_bf16" (Intel Sapphire
+    Rapids and later), "avx512_bf16", or None (then torch's bf16 autocast emulates bf16 in fp32
+    and is slower: an hydo-cm update ran 10× slower under it on an AMD EPYC Zen 3, docs/experiments.md).
+    None off Linux, where the flags cannot be read this way."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
+    except OSError:
+        return None
+    return next((isa for isa in ("amx_bf16", "avx512_bf16") if isa in flags), None)
+
+
 def configure_cpu(threads: int = 2) -> dict[str, object]:
     """Set torch's intra-op threads, flush-to-zero for denormals and the allocator policy.
 
