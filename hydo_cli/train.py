@@ -140,16 +140,17 @@ def train(
                 f"--resume continues {run_dir} with its own config.json: drop {', '.join(given)} "
                 "(only --steps, --minutes, --workers and --threads may change)"
             )
+        changes: dict[str, Any] = {}
         if steps is not None:  # allow extending a finished run
-            cfg = dataclasses.replace(cfg, steps=steps)
+            changes["steps"] = steps
         if max_minutes is not None:  # the budget counts the run's time over all its resumes
-            cfg = dataclasses.replace(cfg, max_minutes=max_minutes)
+            changes["max_minutes"] = max_minutes
         if threads is not None:  # a speed setting, not a learning one: may differ on resume
-            cfg = dataclasses.replace(cfg, threads=threads)
+            changes["threads"] = threads
         if workers is not None:  # the checkpoint's replay shards must match (the trainer checks)
-            cfg = dataclasses.replace(cfg, workers=workers)
-        if cfg.max_minutes < 0:
-            raise HydoError(f"--minutes must be >= 0 (0: no budget). Got {cfg.max_minutes}.")
+            changes["workers"] = workers
+        if changes:  # checked as the file is: --steps 0 or --workers 3 of 8 envs is one line
+            cfg = cfg.replace(f"--resume {run_dir} with {', '.join(changes)}", **changes)
     else:
         cfg = resolve_config(
             preset,
