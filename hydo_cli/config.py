@@ -208,7 +208,7 @@ def check_agent_table(cfg: TrainConfig, source: str) -> None:
     try:
         _agent_schema()(**cfg.agent)
     except ValidationError as e:
-        raise HydoError(one_line(e, source, prefix="agent.")) from None
+        raise HydoError(one_line(e, source, prefix="agent")) from None
     for name in RUN_AGENT_FIELDS:
         if name in cfg.agent and cfg.agent[name] != getattr(cfg, name):
             raise HydoError(

@@ -66,13 +66,17 @@ def key_of(loc: tuple) -> str:
 def one_line(err: ValidationError, source: str, prefix: str = "") -> str:
     """The first problem of ``err`` as ``SOURCE: `KEY` must be EXPECTED, got FOUND`` (one line; how many
     more problems there are is appended, so fixing one never hides that others wait). ``prefix``: the
-    key of the table the schema checked (``agent.``)."""
+    key of the value the schema checked (``agent``, ``cameras[0].T_base_camera``)."""
     errors = err.errors(include_url=False)
     e = errors[0]
     # Union members report their own locations (``int``, ``none``): the user's key is what came before.
     loc = tuple(p for p in e["loc"] if p not in ("int", "float", "str", "none", "bool", "dict", "list"))
     loc = tuple(p for p in loc if not (isinstance(p, str) and p.startswith(("function-", "constrained-"))))
-    key = prefix + key_of(loc) if loc else prefix.rstrip(".")
+    inner = key_of(loc)
+    if prefix and inner:
+        key = prefix + ("" if inner.startswith("[") else ".") + inner
+    else:
+        key = prefix or inner
     kind = e["type"]
     if kind == "missing":
         text = f"`{key}` is missing"
