@@ -29,6 +29,9 @@ def popen(args: list, cwd: Path) -> subprocess.Popen:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        # a shell's background job starts with SIGINT ignored, and a child would inherit that (Python
+        # then never raises KeyboardInterrupt): give it the default, as a terminal's Ctrl-C finds it
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
 
 
@@ -114,7 +117,10 @@ def test_signal_during_eval_leaves_no_half_written_json(sig, tmp_path):
     time.sleep(10)  # imports done, episodes running (nothing is printed before the summary)
     assert p.poll() is None, p.communicate()[1][-2000:]
     p.send_signal(sig)
-    _, err = p.communicate(timeout=120)
+    try:
+        _, err = p.communicate(timeout=120)
+    finally:
+        p.kill()  # never leave it running if it ignored the signal
     assert p.returncode != 0 and "Traceback" not in err, (p.returncode, err[-2000:])
     assert not out.exists()
     strays = [f for f in tmp_path.rglob("*") if f.is_file()]
