@@ -2,6 +2,12 @@
 
 Used by ``hydo train`` (and the training loop, ``hydo_cli.trainer``), ``hydo export`` and loading a
 run's checkpoint (``hydo_cli.policies``); saved as a run's ``config.json``.
+
+``TrainConfig`` is a typed schema (a strict pydantic dataclass, ``sim.schema.STRICT``): every key of a
+``--config`` TOML and of a ``config.json`` is checked against its type and range, and the keys against
+each other, on construction; the nested ``[agent]`` table against ``models.algos.AgentConfig``'s fields
+(:func:`check_agent_table`). :meth:`TrainConfig.parse` turns any failure into one line naming the file
+and the key.
 """
 
 from __future__ import annotations
@@ -9,13 +15,17 @@ from __future__ import annotations
 import dataclasses
 import json
 import tomllib
-from dataclasses import dataclass
+import typing
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
+
+from pydantic import AfterValidator, Field, ValidationError, create_model, model_validator
+from pydantic.dataclasses import dataclass
 
 from hydo_cli.errors import HydoError
 from models.choices import ALGOS, Algo
 from sim.contract import GOAL_MODES
+from sim.schema import STRICT, one_line
 
 #: Format of a run's ``checkpoint.pt`` (written by the trainer, read by ``policies.load_agent``).
 CHECKPOINT_FORMAT = 1
@@ -24,78 +34,147 @@ CHECKPOINT_FORMAT = 1
 REMOVED_KEYS: dict[str, Any] = {"augment": "none"}
 #: Values of keys a config.json written before the key existed had in effect.
 LEGACY_VALUES: dict[str, Any] = {"workers": 1}
+#: Run fields that ``agent_config`` gives the learner itself: an ``[agent]`` table that names one must
+#: agree with the run (else the table's value would be silently overridden).
+RUN_AGENT_FIELDS = ("algo", "n_obj", "n_bg", "seed", "denoise_steps")
+CLUTTER = (0, 1, 2, 5)
 
-__all__ = ["Algo", "TrainConfig", "PRESETS", "resolve_config", "agent_config"]
+__all__ = ["Algo", "TrainConfig", "PRESETS", "resolve_config", "agent_config", "check_agent_table"]
 
 
-@dataclass(frozen=True)
+def _one_of(choices: tuple):
+    def check(v):
+        if v not in choices:
+            raise ValueError(f"must be one of {list(choices)}, got {v!r}")
+        return v
+
+    return AfterValidator(check)
+
+
+# Types with their ranges; strict: a TOML string or boolean is never a count.
+Count = Annotated[int, Field(ge=1)]
+NonNegInt = Annotated[int, Field(ge=0)]
+NonNegFloat = Annotated[float, Field(ge=0)]
+Fraction = Annotated[float, Field(ge=0, le=1)]
+AlgoName = Literal[tuple(ALGOS)]  # type: ignore[valid-type]
+GoalMode = Literal[tuple(GOAL_MODES)]  # type: ignore[valid-type]
+Clutter = Annotated[int, _one_of(CLUTTER)]
+NonEmptyStr = Annotated[str, Field(min_length=1)]
+
+
+@dataclass(frozen=True, config=STRICT)
 class TrainConfig:
     """Everything a training run depends on; saved as ``config.json`` in the run."""
 
-    algo: str = "hydo-cm"
+    algo: AlgoName = "hydo-cm"
     """Learner: one of hacman, hacman-diff, hacman-cm, hydo-gauss, hydo, hydo-cm (design.md §1)."""
-    goals: str = "planar"
+    goals: GoalMode = "planar"
     """Goal mode: planar (translation) or 6d (stable pose)."""
-    objects: str = "train"
+    objects: NonEmptyStr = "train"
     """Object set (split name, object name or mesh folder)."""
-    clutter: int = 0
+    clutter: Clutter = 0
     """Extra scene objects: 0, 1, 2 or 5."""
-    task: str | None = None
+    task: NonEmptyStr | None = None
     """Behaviour-diversity task (sim/tasks.py: push-line | push-align, random starts) instead of objects/goals."""
-    steps: int = 30_000
+    steps: Count = 30_000
     """Environment steps (primitives) to train for."""
-    max_minutes: float = 0.0
+    max_minutes: NonNegFloat = 0.0
     """Wall-clock budget in minutes (0: none): stop, evaluate and checkpoint once it is spent."""
-    seed: int = 0
-    """Seed of envs, networks and sampling."""
-    n_obj: int = 128
+    seed: NonNegInt = 0
+    """Seed of envs, networks and sampling (numpy refuses negative seeds)."""
+    n_obj: Count = 128
     """Object points per observation."""
-    n_bg: int = 128
+    n_bg: Count = 128
     """Background points per observation."""
-    n_envs: int = 8
+    n_envs: Count = 8
     """Envs stepped in lock-step in this process (one batched decision per step)."""
-    batch_size: int = 64
+    batch_size: Count = 64
     """Transitions per gradient update."""
-    updates_per_step: float = 0.5
+    updates_per_step: NonNegFloat = 0.5
     """Gradient updates per env step (update-to-data ratio)."""
-    learning_starts: int = 1_000
-    """Env steps with uniformly random actions before learning starts."""
-    buffer_size: int = 200_000
+    learning_starts: NonNegInt = 1_000
+    """Env steps with uniformly random actions before learning starts (at most ``steps``)."""
+    buffer_size: Count = 200_000
     """Replay capacity in transitions."""
-    denoise_steps: int = 5
+    denoise_steps: Count = 5
     """K: denoising steps of the ddpm / cm motion policies."""
-    eval_every: int = 5_000
+    eval_every: NonNegInt = 5_000
     """Env steps between evaluations (0: only at the end)."""
-    eval_episodes: int = 50
+    eval_episodes: Count = 50
     """Held-out episodes per evaluation."""
-    checkpoint_every: int = 5_000
+    checkpoint_every: Count = 5_000
     """Env steps between checkpoints."""
-    log_every: int = 500
+    log_every: Count = 500
     """Env steps between metric lines."""
-    relabel_future: float = 0.0
+    relabel_future: Fraction = 0.0
     """Hindsight relabelling: the fraction of each sampled batch whose goal becomes the object pose
     after this or a later primitive of its episode (HER's "future" strategy, models.replay)."""
-    workers: int = 2
+    workers: Count = 2
     """Data-parallel worker processes, one per core (hydo_cli.trainer): each steps n_envs / workers
     envs and computes the gradient of batch_size / workers transitions. 1: the serial loop."""
-    threads: int = 1
+    threads: Count = 1
     """torch intra-op threads per worker (a second thread in one process gains ~1.26×, a second
     worker ~1.9×: bench/trainer.py)."""
-    agent: dict = dataclasses.field(default_factory=dict)
+    agent: dict[str, Any] = dataclasses.field(default_factory=dict)
     """Extra learner options passed to ``models.AgentConfig`` (e.g. {"actor_hidden": 128}; see AgentConfig)."""
+
+    @model_validator(mode="after")
+    def _agree(self) -> TrainConfig:
+        """The keys against each other (each message is reported after the file's name)."""
+        for name in ("n_envs", "batch_size", "buffer_size"):
+            if getattr(self, name) % self.workers:
+                raise ValueError(
+                    f"`{name}` ({getattr(self, name)}) must be a multiple of `workers` ({self.workers}): "
+                    "each worker takes an equal share"
+                )
+        if self.learning_starts > self.steps:
+            raise ValueError(
+                f"`learning_starts` ({self.learning_starts}) must be at most `steps` ({self.steps}): "
+                "the run would never learn"
+            )
+        if self.relabel_future and self.task is not None:
+            raise ValueError(
+                "`relabel_future` needs a goal fixed over the episode; the --task goals follow the object"
+            )
+        if self.task is not None:  # --task (eval issue): its scene replaces objects, goals and clutter
+            from sim.tasks import TASK_NAMES
+
+            if self.task not in TASK_NAMES:
+                raise ValueError(f"`task` must be one of {list(TASK_NAMES)}, got {self.task!r}")
+        return self
+
+    @classmethod
+    def parse(cls, values: dict[str, Any], source: str) -> TrainConfig:
+        """Validated ``values`` (a config file's keys over the defaults) → TrainConfig, or one
+        ``HydoError`` line naming ``source``, the key, what was expected and what was found. The
+        ``[agent]`` table is checked too (:func:`check_agent_table`)."""
+        if not isinstance(values, dict):
+            raise HydoError(f"{source}: not a run configuration (a mapping), got {type(values).__name__}")
+        try:
+            cfg = cls(**values)
+        except ValidationError as e:
+            raise HydoError(one_line(e, source)) from None
+        check_agent_table(cfg, source)
+        return cfg
+
+    def replace(self, source: str, **changes: Any) -> TrainConfig:
+        """``dataclasses.replace`` with the same one-line errors (``--resume``'s --steps, --workers...)."""
+        try:
+            return dataclasses.replace(self, **changes)
+        except ValidationError as e:
+            raise HydoError(one_line(e, source)) from None
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "config") -> TrainConfig:
         """A saved ``config.json`` → TrainConfig (keys of removed options at their inert value are
         dropped; any other unknown key is refused)."""
+        if not isinstance(d, dict):
+            raise HydoError(f"{source}: not a run configuration (a JSON object), got {type(d).__name__}")
         for key, inert in REMOVED_KEYS.items():
             if key in d and d[key] != inert:
                 raise HydoError(f"{source}: `{key}` = {d[key]!r} was removed from hydo (docs/experiments.md)")
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - known - set(REMOVED_KEYS))
-        if unknown:
-            raise HydoError(f"{source}: unknown config keys {unknown}")
-        return cls(**{**LEGACY_VALUES, **{k: v for k, v in d.items() if k in known}})
+        kept = {k: v for k, v in d.items() if k not in REMOVED_KEYS}
+        return cls.parse({**LEGACY_VALUES, **kept}, source)
 
     @classmethod
     def load(cls, path: Path) -> TrainConfig:
@@ -104,76 +183,42 @@ class TrainConfig:
             d = json.loads(Path(path).read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
             raise HydoError(f"{path}: not a readable JSON run configuration ({type(e).__name__})") from None
-        if not isinstance(d, dict):
-            raise HydoError(f"{path}: not a run configuration (a JSON object), got {type(d).__name__}")
-        for f in dataclasses.fields(cls):
-            if f.name in d and not _has_type(d[f.name], f.type):
-                raise HydoError(f"{path}: `{f.name}` must be {f.type}, got {d[f.name]!r}")
-        try:
-            return cls.from_dict(d, str(path))
-        except HydoError as e:
-            msg = str(e)
-            raise HydoError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+        return cls.from_dict(d, str(path))
 
-    def __post_init__(self):
-        if self.algo not in ALGOS:
-            raise HydoError(f"`algo` must be one of {list(ALGOS)}. Got {self.algo!r}.")
-        if self.goals not in GOAL_MODES:
-            raise HydoError(f"`goals` must be one of {list(GOAL_MODES)}. Got {self.goals!r}.")
-        if self.clutter not in (0, 1, 2, 5):
-            raise HydoError(f"`clutter` must be one of [0, 1, 2, 5]. Got {self.clutter!r}.")
-        for name in (
-            "steps",
-            "n_obj",
-            "n_bg",
-            "n_envs",
-            "batch_size",
-            "buffer_size",
-            "denoise_steps",
-            "threads",
-            "workers",
-        ):
-            if getattr(self, name) < 1:
-                raise HydoError(f"`{name}` must be at least 1. Got {getattr(self, name)}.")
-        for name in ("n_envs", "batch_size", "buffer_size"):
-            if getattr(self, name) % self.workers:
-                raise HydoError(
-                    f"`{name}` ({getattr(self, name)}) must be a multiple of `workers` ({self.workers}): "
-                    "each worker takes an equal share"
-                )
-        if self.max_minutes < 0:
-            raise HydoError(f"`max_minutes` (--minutes) must be >= 0 (0: no budget). Got {self.max_minutes}.")
-        if self.updates_per_step < 0:
-            raise HydoError(f"`updates_per_step` must be >= 0. Got {self.updates_per_step}.")
-        if not 0.0 <= self.relabel_future <= 1.0:
-            raise HydoError(f"`relabel_future` must be in [0, 1]. Got {self.relabel_future}.")
-        if self.relabel_future and self.task is not None:
+
+def _agent_schema():
+    """A strict pydantic model of ``models.algos.AgentConfig``'s fields (its types from the dataclass
+    itself, so the two cannot drift), plus what a run's record may hold beside them."""
+    from models.algos import REMOVED_INERT, REMOVED_OPTIONS, AgentConfig
+
+    hints = typing.get_type_hints(AgentConfig)
+    fields: dict[str, Any] = {f.name: (hints[f.name], f.default) for f in dataclasses.fields(AgentConfig)}
+    fields["resolved"] = (dict[str, Any] | None, None)  # AgentConfig.to_dict's record of defaults
+    for name in (*REMOVED_OPTIONS, *REMOVED_INERT):  # AgentConfig.from_dict refuses a live value
+        fields[name] = (Any, None)
+    return create_model("agent", __config__=STRICT, **fields)
+
+
+def check_agent_table(cfg: TrainConfig, source: str) -> None:
+    """Refuse an ``[agent]`` table (``cfg.agent``) whose keys are not AgentConfig fields, whose values
+    have the wrong type or range, or that names a run field with another value than the run's.
+    Imports torch (``models.algos``) only when the table is not empty."""
+    if not cfg.agent:
+        return
+    try:
+        _agent_schema()(**cfg.agent)
+    except ValidationError as e:
+        raise HydoError(one_line(e, source, prefix="agent")) from None
+    for name in RUN_AGENT_FIELDS:
+        if name in cfg.agent and cfg.agent[name] != getattr(cfg, name):
             raise HydoError(
-                "`relabel_future` needs a goal fixed over the episode; the --task goals follow the object"
+                f"{source}: `agent.{name}` = {cfg.agent[name]!r} disagrees with `{name}` = "
+                f"{getattr(cfg, name)!r}: set it once, outside [agent]"
             )
-        if self.task is not None:  # --task (eval issue): its scene replaces objects, goals and clutter
-            from sim.tasks import TASK_NAMES
-
-            if self.task not in TASK_NAMES:
-                raise HydoError(f"`task` must be one of {list(TASK_NAMES)}. Got {self.task!r}.")
-
-
-def _has_type(value: Any, annotation: str) -> bool:
-    """Whether a JSON value fits a TrainConfig field's annotation (``int``, ``float``, ``str | None``, ...)."""
-    kinds = {
-        "int": (int,),
-        "float": (int, float),
-        "str": (str,),
-        "dict": (dict,),
-        "bool": (bool,),
-        "None": (),
-    }
-    options = [a.strip() for a in annotation.split("|")]
-    if value is None:
-        return "None" in options
-    if isinstance(value, bool) and "bool" not in options:  # JSON true is not a step count
-        return False
-    return any(isinstance(value, kinds.get(a, (object,))) for a in options)
+    try:
+        agent_config(cfg)  # AgentConfig's own range checks (``__post_init__``)
+    except ValueError as e:  # its messages name the field as `name`: say which table it is in
+        raise HydoError(f"{source}: {str(e).replace('`', '`agent.', 1)}") from None
 
 
 #: Named starting points; flags and --config override them.
@@ -203,17 +248,30 @@ def resolve_config(preset: str | None, config_file: Path | None, overrides: dict
         values.update(PRESETS[preset])
     if config_file is not None:
         try:
-            values.update(tomllib.loads(Path(config_file).read_text()))
+            values.update(tomllib.loads(Path(config_file).read_text(encoding="utf-8")))
         except FileNotFoundError:
             raise HydoError(f"config file {config_file} does not exist") from None
+        except (OSError, UnicodeDecodeError) as e:
+            raise HydoError(f"config file {config_file} cannot be read ({type(e).__name__})") from None
         except tomllib.TOMLDecodeError as e:
             raise HydoError(f"config file {config_file} is not valid TOML: {e}") from None
-    values.update({k: v for k, v in overrides.items() if v is not None})
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise HydoError(f"unknown config keys {unknown}; known keys: {sorted(known)}")
-    return TrainConfig(**values)
+    flags = {k: v for k, v in overrides.items() if v is not None}
+    values.update(flags)
+    # A flag's bad value is the flag's fault, not the file's: name what the user wrote.
+    source = str(config_file) if config_file is not None else "the configuration"
+    try:
+        TrainConfig(**values)
+    except ValidationError as e:
+        first = e.errors()[0]["loc"]
+        if first and first[0] in flags:
+            source = f"command line (--{FLAG_OF.get(first[0], first[0])})"
+        elif config_file is None and preset is not None:
+            source = f"--preset {preset}"
+    return TrainConfig.parse(values, source)
+
+
+#: The ``hydo train`` flag of each TrainConfig key it sets, where the names differ.
+FLAG_OF = {"denoise_steps": "k", "max_minutes": "minutes"}
 
 
 def agent_config(cfg: TrainConfig):

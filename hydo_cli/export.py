@@ -10,6 +10,7 @@ from rich.console import Console
 
 from hydo_cli.errors import HydoError
 from hydo_cli.onnx_export import export_agent
+from hydo_cli.paths import check_writable_folder
 from hydo_cli.policies import load_agent
 
 HELP = """Export a trained run or checkpoint as ONNX (encoder.onnx, actor.onnx, critic.onnx, manifest.json),
@@ -37,6 +38,7 @@ def export(
         raise HydoError(f"--out {out} is a file, not a model folder")
     if out.is_dir() and any(out.iterdir()) and not force:
         raise HydoError(f"--out {out} already holds files; give another --out or --force to replace it")
+    check_writable_folder("--out", out)  # before the slow load and export, not after
     agent, cfg, command = load_agent(target)
     report = export_agent(agent, cfg, command, out, seed=seed)
     console.print(

@@ -3,6 +3,7 @@ errors to one stderr line and a non-zero exit (set ``HYDO_DEBUG=1`` for the full
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import sys
@@ -30,6 +31,10 @@ app.command("plot", help=plot.HELP)(plot.plot)
 app.command("sweep", help=sweep.HELP)(sweep.sweep)
 
 
+#: errno values of a write the user's disk refused (permissions, read-only, full, quota).
+USER_OS_ERRORS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT}
+
+
 def main() -> None:
     from hydo_cli.errors import known_errors
 
@@ -45,6 +50,14 @@ def main() -> None:
         if os.environ.get("HYDO_DEBUG"):
             raise
         typer.secho(f"hydo: error: {e}", err=True, fg=typer.colors.RED)
+        sys.exit(1)
+    except OSError as e:
+        # A folder that turned read-only or full between a command's own checks and its write is the
+        # machine's state, not a bug: one line naming the path. Any other OSError keeps its traceback.
+        if e.errno not in USER_OS_ERRORS or os.environ.get("HYDO_DEBUG"):
+            raise
+        where = f"{e.filename}: " if e.filename else ""
+        typer.secho(f"hydo: error: cannot write {where}{e.strerror}", err=True, fg=typer.colors.RED)
         sys.exit(1)
 
 

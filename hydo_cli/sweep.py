@@ -33,15 +33,17 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import typer
+from pydantic import BaseModel, Field, ValidationError
 from rich.console import Console
 
 from hydo_cli.errors import HydoError
 from hydo_cli.options import Goals, TaskOpt
 from models.choices import ALGOS
 from sim.atomic import atomic_write_text
+from sim.schema import STRICT, one_line
 
 HELP = """Run methods x seeds as ordinary `hydo train` runs DIR/<algo>-s<seed>, locally or on a Ray cluster.
 
@@ -103,12 +105,11 @@ class SweepSpec:
 
     # --- sweep.json: each trial's state, written by the driver only -----------------------------
     def load_state(self) -> None:
+        """Read ``sweep.json`` (:class:`SweepFile`); one line naming the file and key if it is damaged
+        (a trial marked done is skipped, so a wrong state must never be guessed)."""
         path = self.out / "sweep.json"
         if path.exists():
-            try:
-                self.state = json.loads(path.read_text()).get("trials", {})
-            except json.JSONDecodeError:
-                self.state = {}
+            self.state = read_sweep_file(path)
 
     def mark(self, trial: Trial, status: str, **extra) -> None:
         entry = self.state.setdefault(trial.name, {"attempts": 0})
@@ -120,6 +121,45 @@ class SweepSpec:
 
     def pending(self) -> list[Trial]:
         return [t for t in self.trials if self.state.get(t.name, {}).get("status") != "done"]
+
+
+TrialStatus = Literal["pending", "running", "done", "failed"]
+
+
+class TrialState(BaseModel):
+    """One trial's entry of ``sweep.json`` (written by ``SweepSpec.mark``)."""
+
+    model_config = STRICT
+
+    status: TrialStatus
+    run: Annotated[str, Field(min_length=1)]
+    attempts: Annotated[int, Field(ge=0)]
+    returncode: int | None = None
+
+
+class SweepFile(BaseModel):
+    """``DIR/sweep.json``: the sweep's command and each trial's state, by trial name (``algo-sSEED``)."""
+
+    model_config = STRICT
+
+    command: str
+    trials: dict[str, TrialState]
+
+
+def read_sweep_file(path: Path) -> dict:
+    """``sweep.json``'s trial states as plain dicts, or a ``HydoError`` line naming the file and key."""
+    hint = f"fix it or delete it (the runs in {path.parent} are kept and resume)"
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise HydoError(f"{path}: not readable sweep bookkeeping ({type(e).__name__}): {hint}") from None
+    if not isinstance(doc, dict):
+        raise HydoError(f"{path}: must be a JSON object, got {type(doc).__name__}: {hint}")
+    try:
+        parsed = SweepFile(**doc)
+    except ValidationError as e:
+        raise HydoError(f"{one_line(e, str(path))}: {hint}") from None
+    return {name: t.model_dump(exclude_none=True) for name, t in parsed.trials.items()}
 
 
 def progress_of(run: Path) -> tuple[int, int]:

@@ -20,6 +20,7 @@ A folder whose run was cut before its first checkpoint restarts from step 0.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -36,6 +37,7 @@ from rich.console import Console
 from hydo_cli.config import PRESETS, Algo, TrainConfig, resolve_config
 from hydo_cli.errors import HydoError
 from hydo_cli.options import Goals, TaskOpt
+from hydo_cli.paths import check_writable_folder
 from sim.atomic import atomic_write_text
 
 HELP = """Train a hybrid policy (HyDo or a baseline) in the simulated bin.
@@ -67,6 +69,37 @@ def system_info() -> dict[str, Any]:
         "cpus": os.cpu_count(),
         "versions": versions,
     }
+
+
+LOCK_FILE = "train.lock"
+
+
+def hold_run_lock(run_dir: Path):
+    """Lock ``run_dir/train.lock`` for this process (``fcntl.flock``: released by the kernel when the
+    process ends, however it ends, so a killed run never leaves a stale lock). A second ``hydo train``
+    (``--resume``) on the same run is refused in one line instead of both writing one checkpoint."""
+    import fcntl
+
+    path = run_dir / LOCK_FILE
+    try:
+        f = open(path, "a+")  # noqa: SIM115 - held open for the whole run
+    except OSError as e:
+        raise HydoError(f"{path}: cannot create the run's lock file ({e.strerror})") from None
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.seek(0)
+        holder = f.read().strip() or "another process"
+        f.close()
+        raise HydoError(
+            f"{run_dir} is being trained by another `hydo train` ({holder}, lock {path}): "
+            "wait for it to finish or stop it first"
+        ) from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"pid {os.getpid()}\n")
+    f.flush()
+    return f
 
 
 def _default_out(cfg: TrainConfig) -> Path:
@@ -142,16 +175,17 @@ def train(
                 f"--resume continues {run_dir} with its own config.json: drop {', '.join(given)} "
                 "(only --steps, --minutes, --workers and --threads may change)"
             )
+        changes: dict[str, Any] = {}
         if steps is not None:  # allow extending a finished run
-            cfg = dataclasses.replace(cfg, steps=steps)
+            changes["steps"] = steps
         if max_minutes is not None:  # the budget counts the run's time over all its resumes
-            cfg = dataclasses.replace(cfg, max_minutes=max_minutes)
+            changes["max_minutes"] = max_minutes
         if threads is not None:  # a speed setting, not a learning one: may differ on resume
-            cfg = dataclasses.replace(cfg, threads=threads)
+            changes["threads"] = threads
         if workers is not None:  # the checkpoint's replay shards must match (the trainer checks)
-            cfg = dataclasses.replace(cfg, workers=workers)
-        if cfg.max_minutes < 0:
-            raise HydoError(f"--minutes must be >= 0 (0: no budget). Got {cfg.max_minutes}.")
+            changes["workers"] = workers
+        if changes:  # checked as the file is: --steps 0 or --workers 3 of 8 envs is one line
+            cfg = cfg.replace(f"--resume {run_dir} with {', '.join(changes)}", **changes)
     else:
         cfg = resolve_config(
             preset,
@@ -182,12 +216,26 @@ def train(
             )
     from hydo_cli.trainer import Trainer
 
-    trainer = Trainer(cfg, run_dir, resume=resume is not None, fresh_replay=fresh_replay)
+    check_writable_folder("--resume" if resume is not None else "--out", run_dir)
+    created = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
+    lock = hold_run_lock(run_dir)  # before the trainer reads (and on resume trims) the run's files
+    try:
+        trainer = Trainer(cfg, run_dir, resume=resume is not None, fresh_replay=fresh_replay)
+    except BaseException:
+        lock.close()
+        if created:  # a refused new run leaves no folder behind (it held only the lock)
+            (run_dir / LOCK_FILE).unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                run_dir.rmdir()
+        raise
     # on --resume too: the run's record holds its current --steps / --minutes / --threads and the
     # full resolved agent configuration (trainer.cfg)
     atomic_write_text(run_dir / "config.json", json.dumps(dataclasses.asdict(trainer.cfg), indent=2))
     if resume is None:
         atomic_write_text(run_dir / "command.txt", shlex.join(["hydo", *sys.argv[1:]]) + "\n")
         atomic_write_text(run_dir / "system.json", json.dumps({**system_info(), **trainer.cpu}, indent=2))
-    trainer.run(fresh_replay)
+    try:
+        trainer.run(fresh_replay)
+    finally:
+        lock.close()  # releases the lock; the file stays (removing it would race a waiting process)

@@ -226,6 +226,30 @@ class AgentConfig:
         check(
             self.critic_motion_dirs >= 0, f"`critic_motion_dirs` must be ≥ 0. Got {self.critic_motion_dirs}."
         )
+        # Rates, scales and noise levels: a zero or negative one trains nothing or divides by zero.
+        for name in (
+            "length_scale",
+            "final_std",
+            "lr_critic",
+            "lr_actor",
+            "lr_alpha",
+            "cm_sigma_data",
+            "cm_rho",
+            "ddpm_beta_min",
+            "cm_sigma_min",
+        ):
+            check(getattr(self, name) > 0, f"`{name}` must be > 0. Got {getattr(self, name)}.")
+        for name in ("explore_motion_std", "target_policy_noise", "target_noise_clip"):
+            check(getattr(self, name) >= 0, f"`{name}` must be ≥ 0. Got {getattr(self, name)}.")
+        for low, high in (
+            ("learned_std_min", "learned_std_max"),
+            ("ddpm_beta_min", "ddpm_beta_max"),
+            ("cm_sigma_min", "cm_sigma_max"),
+        ):
+            check(
+                0 < getattr(self, low) < getattr(self, high),
+                f"`{low}` must be > 0 and below `{high}`. Got {getattr(self, low)}, {getattr(self, high)}.",
+            )
         for name in ("feature_dim", "encoder_hidden", "encoder_global", "actor_hidden", "critic_hidden"):
             check(getattr(self, name) >= 1, f"`{name}` must be ≥ 1. Got {getattr(self, name)}.")
 

@@ -21,14 +21,18 @@ must fire before the robot's collision reflex: ``K · L ≤ F_stop < F_collision
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from pydantic import TypeAdapter, ValidationError
 
 from robot.errors import CellError, GoalError
 from sim.primitive import FLOOR_CLEARANCE_M, PUSH_STEP_M, Workspace
+from sim.schema import STRICT, one_line
 
 CELL_VERSION = 1
 EXAMPLE_CELL = Path(__file__).parent / "cell.example.yaml"
@@ -219,15 +223,27 @@ class _Reader:
         v = self.data.get(key, default)
         if v is None:
             raise self._err(key, "is missing")
+        # numpy would read ``true`` as 1.0 and ``"0.5"`` as 0.5: the strict schema of nested lists of
+        # finite numbers refuses both (sim.schema.STRICT) before numpy sees the value.
         try:
-            a = np.asarray(v, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise self._err(key, f"must be numbers of shape {shape}. Got {v!r}.") from None
+            _number_lists(len(shape)).validate_python(v)
+        except ValidationError as e:
+            raise CellError(one_line(e, self.source, prefix=f"{self.prefix}{key}")) from None
+        a = np.asarray(v, dtype=np.float64)
         if a.shape != shape:
             raise self._err(key, f"must have shape {shape}. Got {a.shape}.")
         if not np.all(np.isfinite(a)):
             raise self._err(key, "must be finite (no NaN or inf)")
         return a
+
+
+@functools.cache
+def _number_lists(rank: int) -> TypeAdapter:
+    """Strict pydantic type of a rank-``rank`` nested list of finite numbers (a vector, a matrix)."""
+    kind: Any = float
+    for _ in range(rank):
+        kind = list[kind]
+    return TypeAdapter(kind, config=STRICT)
 
 
 def _camera(r: _Reader, index: int) -> CameraSpec:

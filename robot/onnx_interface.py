@@ -19,7 +19,13 @@ motion proposed at it, Q being the twin minimum for SAC variants and Q1 for TD3 
 
 from __future__ import annotations
 
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, Field, ValidationError, model_validator
+
+from models.choices import ALGOS
 from sim.contract import FEATURE_DIM, GOAL_MODES
+from sim.schema import STRICT, one_line
 
 FORMAT = "hydo-onnx/1"
 FILES = ("encoder.onnx", "actor.onnx", "critic.onnx")
@@ -60,12 +66,142 @@ class InterfaceError(ValueError):
     """A manifest or graph that breaks the interface above; the message names the file and the field."""
 
 
-def _is_int(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
+#: Keys an export writes beside ``MANIFEST_KEYS`` (records, cross-checked where they say the same).
+OPTIONAL_KEYS = ("paper_name", "objects", "encoder_inputs", "agent_config", "verification")
+#: ``metadata_props`` the exporter stores in each graph (JSON values): what a lone .onnx says it is.
+GRAPH_METADATA = ("format", "obs_contract_version", "algo", "n_obj", "n_bg", "denoise_steps", "q_reduction")
+#: Schedule keys (``noise_schedule``) and the AgentConfig fields they copy.
+SCHEDULE_KEYS = (
+    "chain_entropy",
+    "final_std",
+    "ddpm_beta_min",
+    "ddpm_beta_max",
+    "cm_sigma_max",
+    "cm_sigma_min",
+    "cm_sigma_data",
+    "cm_rho",
+)
+#: agent_config fields that must equal the manifest's own keys of the same name.
+AGENT_CONFIG_SHARED = ("algo", "n_obj", "n_bg", "feature_dim", "denoise_steps")
+
+_Positive = Annotated[float, Field(gt=0)]
+_Count = Annotated[int, Field(ge=1)]
+_Hex64 = Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
+
+
+class NoiseSchedule(BaseModel):
+    """``noise_schedule``: the chain's fixed noise levels (AgentConfig's fields of the same names)."""
+
+    model_config = STRICT
+
+    chain_entropy: Literal["bound", "learned_std"]
+    final_std: _Positive
+    ddpm_beta_min: _Positive
+    ddpm_beta_max: _Positive
+    cm_sigma_max: _Positive
+    cm_sigma_min: _Positive
+    cm_sigma_data: _Positive
+    cm_rho: _Positive
+
+    @model_validator(mode="after")
+    def _ordered(self) -> NoiseSchedule:
+        if not self.ddpm_beta_min < self.ddpm_beta_max:
+            raise ValueError(
+                f"ddpm_beta_min {self.ddpm_beta_min} must be below ddpm_beta_max {self.ddpm_beta_max}"
+            )
+        if not self.cm_sigma_min < self.cm_sigma_max:
+            raise ValueError(
+                f"cm_sigma_min {self.cm_sigma_min} must be below cm_sigma_max {self.cm_sigma_max}"
+            )
+        return self
+
+
+class Manifest(BaseModel):
+    """``manifest.json``: every key typed and ranged, and the keys checked against each other and
+    against the algorithm table (``models.choices.ALGOS``, torch-free): the noise a chain of K steps
+    consumes, the Q reduction of the objective, the paper name, the agent record."""
+
+    model_config = STRICT
+
+    format: Annotated[str, Field(min_length=1)]
+    obs_contract_version: int
+    algo: Literal[tuple(ALGOS)]  # type: ignore[valid-type]
+    n_obj: _Count
+    n_bg: _Count
+    feature_dim: _Count
+    denoise_steps: _Count
+    noise_per_point: _Count
+    noise_schedule: NoiseSchedule
+    q_reduction: Literal[Q_REDUCTIONS]  # type: ignore[valid-type]
+    stochastic: bool
+    goals: Literal[GOAL_MODES]  # type: ignore[valid-type]
+    training_command: str
+    sha256: dict[Literal[FILES], _Hex64]  # type: ignore[valid-type]
+    paper_name: str | None = None
+    objects: Annotated[str, Field(min_length=1)] | None = None
+    encoder_inputs: list[str] | None = None  # absent in exports before encoder normals existed
+    agent_config: dict[str, Any] | None = None
+    verification: dict[str, Any] | None = None
+
+    @model_validator(mode="after")
+    def _agree(self) -> Manifest:
+        spec = ALGOS[self.algo]
+        if sorted(self.sha256) != sorted(FILES):
+            raise ValueError(
+                f"`sha256` must hold one hash per graph {list(FILES)}, got {sorted(self.sha256)}"
+            )
+        # The actor's noise input is (B, M, S, 3): a K-step chain draws u^K and one z per step, a
+        # tanh / Gaussian policy one 3-vector. So K is read off the graph (check_graph checks S).
+        want_s = self.denoise_steps + 1 if spec.motion in ("ddpm", "cm") else 1
+        if self.noise_per_point != want_s:
+            if want_s > 1:
+                why = (
+                    f"a {spec.motion} chain of K steps takes K + 1 noise draws per point, so the actor's "
+                    f"{self.noise_per_point} say K = {self.noise_per_point - 1}"
+                )
+            else:
+                why = f"{self.algo}'s {spec.motion} policy takes 1 noise draw per point"
+            raise ValueError(
+                f"`denoise_steps` {self.denoise_steps} disagrees with `noise_per_point` {self.noise_per_point}: {why}"
+            )
+        want_q = "min" if spec.objective == "sac" else "q1"
+        if self.q_reduction != want_q:
+            raise ValueError(
+                f"`q_reduction` {self.q_reduction!r} is not {self.algo}'s ({spec.objective}: {want_q!r})"
+            )
+        if spec.motion in ("tanh", "gauss") and self.stochastic:
+            raise ValueError(
+                f"`stochastic` is true, but {self.algo}'s {spec.motion} policy acts deterministically"
+            )
+        if self.paper_name is not None and self.paper_name != spec.paper_name:
+            raise ValueError(f"`paper_name` {self.paper_name!r} is not {self.algo}'s ({spec.paper_name!r})")
+        if self.encoder_inputs is not None and tuple(self.encoder_inputs) not in (
+            ENCODER_INPUTS,
+            ENCODER_INPUTS_WITH_NORMALS,
+        ):
+            raise ValueError(
+                f"`encoder_inputs` must be {list(ENCODER_INPUTS)} or {list(ENCODER_INPUTS_WITH_NORMALS)}, "
+                f"got {self.encoder_inputs}"
+            )
+        agent = self.agent_config
+        if agent is not None:
+            for key in (*AGENT_CONFIG_SHARED, *SCHEDULE_KEYS):
+                mine = getattr(self.noise_schedule, key) if key in SCHEDULE_KEYS else getattr(self, key)
+                where = f"noise_schedule.{key}" if key in SCHEDULE_KEYS else key
+                if key in agent and agent[key] != mine:
+                    raise ValueError(f"`{where}` {mine!r} disagrees with `agent_config.{key}` {agent[key]!r}")
+            normals = agent.get("encoder_normals")
+            if self.encoder_inputs is not None and normals is not None:
+                if normals != (tuple(self.encoder_inputs) == ENCODER_INPUTS_WITH_NORMALS):
+                    raise ValueError(
+                        f"`encoder_inputs` {self.encoder_inputs} disagrees with `agent_config.encoder_normals` {normals}"
+                    )
+        return self
 
 
 def check_manifest(manifest, source: str) -> None:
-    """Refuse a manifest whose fields are missing, of the wrong type or an unknown enum value.
+    """Refuse a manifest whose fields are missing, unknown, of the wrong type or range, an unknown enum
+    value, or that disagree with each other (:class:`Manifest`).
 
     Never read a missing or unknown value as a default (a manifest without ``goals`` is not a 6D
     model, an unknown ``q_reduction`` is not Q1): ``InterfaceError`` naming the key instead.
@@ -75,39 +211,31 @@ def check_manifest(manifest, source: str) -> None:
     missing = [k for k in MANIFEST_KEYS if k not in manifest]
     if missing:
         raise InterfaceError(f"{source} lacks {missing}: re-export the model")
+    try:
+        Manifest(**manifest)
+    except ValidationError as e:
+        raise InterfaceError(one_line(e, source)) from None
 
-    def bad(key: str, want: str) -> InterfaceError:
-        return InterfaceError(f"{source}: `{key}` must be {want}, got {manifest[key]!r}")
 
-    for key in ("format", "algo", "training_command"):
-        if not isinstance(manifest[key], str) or (key != "training_command" and not manifest[key]):
-            raise bad(key, "a non-empty string" if key != "training_command" else "a string")
-    if not _is_int(manifest["obs_contract_version"]):
-        raise bad("obs_contract_version", "an integer")
-    for key in ("n_obj", "n_bg", "feature_dim", "noise_per_point"):
-        if not _is_int(manifest[key]) or manifest[key] < 1:
-            raise bad(key, "an integer >= 1")
-    if not _is_int(manifest["denoise_steps"]) or manifest["denoise_steps"] < 0:
-        raise bad("denoise_steps", "an integer >= 0")
-    if not isinstance(manifest["noise_schedule"], dict):
-        raise bad("noise_schedule", "a JSON object")
-    if manifest["q_reduction"] not in Q_REDUCTIONS:
-        raise bad("q_reduction", f"one of {list(Q_REDUCTIONS)}")
-    if not isinstance(manifest["stochastic"], bool):
-        raise bad("stochastic", "true or false")
-    if manifest["goals"] not in GOAL_MODES:
-        raise bad("goals", f"one of {list(GOAL_MODES)}")
-    if "objects" in manifest and not (isinstance(manifest["objects"], str) and manifest["objects"]):
-        raise bad("objects", "a non-empty string (an object set or mesh path)")
-    inputs = manifest.get("encoder_inputs")  # absent in exports before encoder normals existed
-    if inputs is not None and tuple(inputs) not in (ENCODER_INPUTS, ENCODER_INPUTS_WITH_NORMALS):
-        raise bad("encoder_inputs", f"{list(ENCODER_INPUTS)} or {list(ENCODER_INPUTS_WITH_NORMALS)}")
-    sha = manifest["sha256"]
-    if not isinstance(sha, dict) or sorted(sha) != sorted(FILES):
-        raise bad("sha256", f"an object with one hash per graph {list(FILES)}")
-    for name, h in sha.items():
-        if not (isinstance(h, str) and len(h) == 64 and all(c in "0123456789abcdef" for c in h)):
-            raise InterfaceError(f"{source}: `sha256.{name}` must be 64 hex digits, got {h!r}")
+def check_metadata(path: str, manifest: dict, metadata: dict[str, str]) -> None:
+    """Refuse a graph whose ``metadata_props`` (what the exporter recorded in it: algorithm, point
+    counts, K, ...) disagree with the manifest beside it. Graphs exported before the metadata existed
+    carry none; their K is still checked through the noise input's shape (``Manifest``, ``check_graph``)."""
+    import json
+
+    for key in GRAPH_METADATA:
+        if key not in metadata:
+            continue
+        try:
+            value = json.loads(metadata[key])
+        except ValueError:
+            raise InterfaceError(
+                f"{path}: metadata `{key}` is not JSON, got {metadata[key][:40]!r}"
+            ) from None
+        if value != manifest[key]:
+            raise InterfaceError(
+                f"{path}: the graph was exported with `{key}` = {value!r}, manifest.json says {manifest[key]!r}"
+            )
 
 
 def graph_spec(manifest: dict, name: str, with_normals: bool):

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from robot.errors import InputError, ModelLoadError
-from robot.onnx_interface import FILES, FORMAT, InterfaceError, check_graph, check_manifest
+from robot.onnx_interface import FILES, FORMAT, InterfaceError, check_graph, check_manifest, check_metadata
 from sim.contract import FEATURE_DIM, OBS_CONTRACT_VERSION
 from sim.primitive import FeasibilityMask
 
@@ -112,6 +112,7 @@ class OnnxPolicy:
                 check_graph(
                     str(folder / name), name, manifest, sessions[-1].get_inputs(), sessions[-1].get_outputs()
                 )
+                check_metadata(str(folder / name), manifest, sessions[-1].get_modelmeta().custom_metadata_map)
             except InterfaceError as e:
                 raise ModelLoadError(str(e)) from None
         return cls(manifest, *sessions)
