@@ -6,13 +6,17 @@ Recorded with that code (never run by the tests):
     PYTHONPATH=/tmp/old python tests/data/old-run-v0/record_decisions.py /tmp/old \
         tests/data/old-run-v0/decisions-dd74c8e.npz
 """
+
 import sys
 from pathlib import Path
+
 import numpy as np
 import torch
+
 root, out = Path(sys.argv[1]), Path(sys.argv[2])
 sys.path.insert(0, str(root))  # the old code's packages
 from hydo_cli.trainer import load_agent  # noqa: E402
+
 agent, cfg, _ = load_agent(Path(__file__).resolve().parent)
 rng = np.random.default_rng(20261203)
 B, n_obj, n_bg = 4, cfg.n_obj, cfg.n_bg
