@@ -152,7 +152,9 @@ def main(argv: list[str] | None = None) -> int:
 
     cpu = configure_cpu(args.threads)
     if args.bf16 and native_bf16() is None:
-        print("note: this CPU has no native bf16 (no amx_bf16 / avx512_bf16): autocast emulates it", flush=True)
+        print(
+            "note: this CPU has no native bf16 (no amx_bf16 / avx512_bf16): autocast emulates it", flush=True
+        )
     overrides = parse_overrides(args.set)
     batch_sizes = [int(x) for x in args.batch_sizes.split(",")]
     results: dict = {}
