@@ -184,6 +184,7 @@ class BinScene:
             [np.arange(m.jnt_dofadr[j], m.jnt_dofadr[j] + 6) for j in np.flatnonzero(m.jnt_type == 0)]
         )
         self._rollout = rollout.Rollout(nthread=0)  # runs on the calling thread
+        self._poses: dict[str, tuple[bytes, np.ndarray]] = {}  # object_T's, by body
         self.reset()
 
     # --- state accessors -------------------------------------------------------------------------
@@ -215,7 +216,14 @@ class BinScene:
         return q[:3].copy(), q[3:7].copy()
 
     def object_T(self, body: str = "object") -> np.ndarray:
-        return pose_matrix(*self.object_pose(body))
+        """``(4, 4)`` pose of a free body (a copy), made once per pose: the env reads it several times
+        in one state (goal, reward, observation)."""
+        adr = self.obj_qadr if body == "object" else self.clutter_qadr[int(body.removeprefix("clutter"))]
+        key = self.data.qpos[adr : adr + 7].tobytes()
+        cached = self._poses.get(body)
+        if cached is None or cached[0] != key:
+            cached = self._poses[body] = (key, pose_matrix(*self.object_pose(body)))
+        return cached[1].copy()
 
     def set_goal_ghost(self, pos: np.ndarray, quat_wxyz: np.ndarray) -> None:
         self.data.mocap_pos[self.goal_mocap] = pos
