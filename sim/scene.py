@@ -10,6 +10,7 @@ Frames and units: world frame, metres, quaternions wxyz. The bin floor's top is 
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,11 +56,11 @@ def push_controls(waypoints: np.ndarray, timestep: float) -> np.ndarray:
     ``PUSH_SPEED``, the target interpolated at each step."""
     rows = []
     target = waypoints[0].copy()
-    for i in range(1, len(waypoints)):
-        # the retract waypoint is only lifted to (at approach speed); the scene then parks the hand
+    for i in range(1, len(waypoints)):  # the last: the 6 cm lift off the object, at approach speed
         speed = PUSH_SPEED if i in PUSH_SEGMENTS else APPROACH_SPEED
-        n = max(1, int(np.ceil(np.linalg.norm(waypoints[i] - target) / (speed * timestep))))
-        rows.append(target + (waypoints[i] - target) * (np.arange(1, n + 1) / n)[:, None])
+        step = waypoints[i] - target
+        n = max(1, math.ceil(math.sqrt(step.dot(step)) / (speed * timestep)))  # np.linalg.norm's sum
+        rows.append(target + step * (np.arange(1, n + 1) / n)[:, None])
         target = waypoints[i].copy()
         if i in PUSH_SEGMENTS:
             rows.append(np.repeat(rows[-1][-1:], TRACK_STEPS, axis=0))
@@ -180,6 +181,7 @@ class BinScene:
         self.goal_mocap = m.body_mocapid[m.body("goal").id]
         hand_body = m.body("hand").id
         self.hand_geoms = np.flatnonzero(m.geom_bodyid == hand_body)
+        self._is_hand_geom = m.geom_bodyid == hand_body  # by geom id
         self.free_dofs = np.concatenate(  # the free bodies' dofs: settle waits for them to rest
             [np.arange(m.jnt_dofadr[j], m.jnt_dofadr[j] + 6) for j in np.flatnonzero(m.jnt_type == 0)]
         )
@@ -261,14 +263,15 @@ class BinScene:
         n_max = int(max_s / m.opt.timestep)
         steps = 0
         calm = 0
-        free_dofs = self.free_dofs
+        free_dofs, qvel = self.free_dofs, d.qvel
         while steps < n_max:
             mujoco.mj_step(m, d, nstep=chunk)
             steps += chunk
-            v = d.qvel[free_dofs].reshape(-1, 6)
-            if np.all(np.linalg.norm(v[:, :3], axis=1) < SETTLE_LIN_VEL) and np.all(
-                np.linalg.norm(v[:, 3:], axis=1) < SETTLE_ANG_VEL
-            ):
+            sq = np.square(qvel[free_dofs].reshape(-1, 6))
+            # the norms of the linear and angular velocities, summed in np.linalg.norm's order
+            if (np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2]) < SETTLE_LIN_VEL).all() and (
+                np.sqrt(sq[:, 3] + sq[:, 4] + sq[:, 5]) < SETTLE_ANG_VEL
+            ).all():
                 calm += 1
                 if calm >= 2:
                     break
@@ -281,8 +284,7 @@ class BinScene:
         d = self.data
         if d.ncon == 0:
             return 0.0
-        geoms = d.contact.geom[: d.ncon]
-        hand = np.isin(geoms, self.hand_geoms).any(axis=1)
+        hand = self._is_hand_geom[d.contact.geom[: d.ncon]].any(axis=1)
         return float(max(0.0, -d.contact.dist[: d.ncon][hand].min())) if hand.any() else 0.0
 
     def execute_primitive(self, waypoints: np.ndarray) -> PrimitiveResult:
