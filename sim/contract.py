@@ -93,12 +93,14 @@ class SymmetricGoals:
             return
         self.goals = T_goal[None] @ symmetries  # (S, 4, 4)
         self.probe = points_obj[:: max(1, len(points_obj) // SYMMETRY_PROBE_POINTS)]
-        self._there_probe = self._there(self.goals, self.probe)  # (S, 3, P_probe)
-        self._there_all: dict[int, np.ndarray] = {}  # finalist -> (1, 3, P), made when first a finalist
+        self._there_probe = self._there(self.goals, self.probe)  # (3, S, P_probe)
+        self._there_all: dict[int, np.ndarray] = {}  # finalist -> (3, 1, P), made when first one
 
     @staticmethod
-    def _there(G: np.ndarray, pts: np.ndarray) -> np.ndarray:  # (K, 4, 4), (P, 3) -> (K, 3, P)
-        return G[:, :3, :3] @ pts.T + G[:, :3, 3:]
+    def _there(G: np.ndarray, pts: np.ndarray) -> np.ndarray:  # (K, 4, 4), (P, 3) -> (3, K, P)
+        """Where the goals ``G`` put the samples ``pts``, coordinate-major: the flows' differences
+        then run over contiguous rows."""
+        return np.ascontiguousarray((G[:, :3, :3] @ pts.T + G[:, :3, 3:]).transpose(1, 0, 2))
 
     def nearest(self, T_obj: np.ndarray, points_world: np.ndarray | None = None) -> np.ndarray:
         """The goal pose (4, 4) to use from ``T_obj``: the one whose mean goal flow over the surface
@@ -108,24 +110,32 @@ class SymmetricGoals:
         if self.n <= 1:
             return self.T_goal
 
-        def mean_flow(there: np.ndarray, here: np.ndarray) -> np.ndarray:  # (K, 3, P), (P, 3) -> (K,)
-            # np.linalg.norm(there - here.T, axis=1).mean(1) bit for bit (the same products and sums in
-            # the same order), without its slow reduction over the middle axis (~5x faster)
-            d = there - here.T
+        def mean_flow(there: np.ndarray, here: np.ndarray) -> np.ndarray:  # (3, K, P), (3, 1, P) -> (K,)
+            # np.linalg.norm(there - here, axis=1).mean(1) of the (K, 3, P) layout bit for bit (the
+            # same products and sums in the same order), ~7x faster than norm's middle-axis reduction
+            d = there - here
             np.square(d, out=d)
-            sq = d[:, 0] + d[:, 1]
-            sq += d[:, 2]
+            sq = d[0] + d[1]
+            sq += d[2]
             return np.sqrt(sq, out=sq).mean(1)
 
         # the goal itself (symmetries[0], the identity) is always a finalist: never asked for more than it
-        ranked = np.argsort(mean_flow(self._there_probe, transform_points(T_obj, self.probe)))
-        finalists = np.unique(np.r_[0, ranked[:SYMMETRY_FINALISTS]])
-        for k in finalists:
-            if k not in self._there_all:
-                self._there_all[k] = self._there(self.goals[k : k + 1], self.points_obj)
-        there = np.concatenate([self._there_all[k] for k in finalists])
-        here = transform_points(T_obj, self.points_obj) if points_world is None else points_world
-        return self.goals[finalists[int(np.argmin(mean_flow(there, here)))]].copy()
+        def coordinate_major(points: np.ndarray) -> np.ndarray:  # (P, 3) -> (3, 1, P)
+            return np.ascontiguousarray(points.T)[:, None, :]
+
+        here = coordinate_major(transform_points(T_obj, self.probe))
+        ranked = np.argsort(mean_flow(self._there_probe, here))
+        finalists = sorted({0, *ranked[:SYMMETRY_FINALISTS].tolist()})
+        here = coordinate_major(
+            transform_points(T_obj, self.points_obj) if points_world is None else points_world
+        )
+        flows = []
+        for k in finalists:  # one at a time: the same flows as one batch, without stacking them
+            there = self._there_all.get(k)
+            if there is None:
+                there = self._there_all[k] = self._there(self.goals[k : k + 1], self.points_obj)
+            flows.append(mean_flow(there, here)[0])
+        return self.goals[finalists[int(np.argmin(flows))]].copy()
 
 
 def symmetric_goal(
@@ -188,15 +198,16 @@ def build_observation(
     """
     io = resample(len(obj_points), n_obj, rng)
     ib = resample(len(bg_points), n_bg, rng)
-    p_obj = obj_points[io].astype(np.float32)
-    points = np.concatenate([p_obj, bg_points[ib].astype(np.float32)], axis=0)
+    obj_points, obj_normals, bg_points = (np.asarray(a) for a in (obj_points, obj_normals, bg_points))
+    p_obj = obj_points.take(io, axis=0).astype(np.float32)  # take: obj_points[io], faster
+    points = np.concatenate([p_obj, bg_points.take(ib, axis=0).astype(np.float32)], axis=0)
     features = np.zeros((n_obj + n_bg, FEATURE_DIM), dtype=np.float32)
     features[:n_obj, 0] = 1.0
     features[:n_obj, 1:] = goal_flow(p_obj, T_obj, T_goal)
     return {
         "points": points,
         "features": features,
-        "normals": obj_normals[io].astype(np.float32),
+        "normals": obj_normals.take(io, axis=0).astype(np.float32),
     }
 
 
