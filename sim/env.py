@@ -52,7 +52,6 @@ from sim.contract import (
     build_observation,
     pose_matrix,
     reward_and_success,
-    transform_points,
 )
 from sim.goals import (
     footprint_radius,
@@ -97,7 +96,6 @@ class BinEnv(gym.Env):
         self._symmetries: dict[str, np.ndarray] = {}
         self._goal_key: tuple | None = None
         self._goal_poses: tuple[tuple, SymmetricGoals] | None = None  # the goal's symmetric poses
-        self._surface: tuple[tuple, np.ndarray] | None = None  # the surface samples in the world frame
         if goals not in GOAL_MODES:
             raise ValueError(f"`goals` must be one of {list(GOAL_MODES)}. Got {goals!r}.")
         if clutter not in CLUTTER_CHOICES:
@@ -154,15 +152,6 @@ class BinEnv(gym.Env):
             self._scenes[key] = BinScene(asset, clutter, self.task.obstacles if self.task else ())
         return self._scenes[key]
 
-    def _surface_world(self, T_obj: np.ndarray) -> np.ndarray:
-        """The object's surface samples (P, 3) in the world frame at ``T_obj``: the symmetric goal's
-        pick and the reward use them, computed once per state."""
-        asset = self.scene.asset
-        key = (asset.name, T_obj.tobytes())
-        if self._surface is None or self._surface[0] != key:
-            self._surface = (key, transform_points(T_obj, asset.surface_points))
-        return self._surface[1]
-
     def _refresh_goal(self) -> None:
         """The goal the flow, reward and success use: the nearest pose that looks like ``T_goal``."""
         asset = self.scene.asset
@@ -179,7 +168,7 @@ class BinEnv(gym.Env):
         if self._goal_poses is None or self._goal_poses[0] != goal_key:  # a new goal: once an episode
             poses = SymmetricGoals(self.T_goal, asset.surface_points, self._symmetries[asset.name])
             self._goal_poses = (goal_key, poses)
-        self.T_goal_eff = self._goal_poses[1].nearest(T_obj, self._surface_world(T_obj))
+        self.T_goal_eff = self._goal_poses[1].nearest(T_obj, self.scene.object_surface())
 
     def _observe(self) -> dict[str, np.ndarray]:
         self._refresh_goal()
@@ -194,7 +183,7 @@ class BinEnv(gym.Env):
         """Reward, success and distance at the current pose."""
         self._refresh_goal()
         T_obj = self.scene.object_T()
-        return reward_and_success(self._surface_world(T_obj), T_obj, self.T_goal_eff)
+        return reward_and_success(self.scene.object_surface(), T_obj, self.T_goal_eff)
 
     def _place_clutter(self, rng, obj_pos, obj_r) -> None:
         placed = [(obj_pos[:2], obj_r)]

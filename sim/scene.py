@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
-from sim.contract import pose_matrix
+from sim.contract import pose_matrix, transform_points
 from sim.objects import ObjectAsset
 from sim.primitive import BIN_INNER_SIZE_M, PUSH_SEGMENTS
 
@@ -53,18 +53,19 @@ def push_controls(waypoints: np.ndarray, timestep: float) -> np.ndarray:
     """The hand's position targets ``(T, 3)``, one per physics step, from the pre-contact waypoint
     ``waypoints[0]`` (where the hand starts) through the pushes (each followed by ``TRACK_STEPS`` at
     its end) to the retract lift ``waypoints[-1]``: straight lines at ``APPROACH_SPEED`` or
-    ``PUSH_SPEED``, the target interpolated at each step."""
-    rows = []
-    target = waypoints[0].copy()
-    for i in range(1, len(waypoints)):  # the last: the 6 cm lift off the object, at approach speed
+    ``PUSH_SPEED``, the target interpolated at each step (``start + (end - start) · s / n``)."""
+    moves = np.diff(waypoints, axis=0)  # segment i + 1 runs from waypoint i by moves[i]
+    n, hold = [], []
+    for i, move in enumerate(moves, start=1):  # the last: the 6 cm lift off the object
         speed = PUSH_SPEED if i in PUSH_SEGMENTS else APPROACH_SPEED
-        step = waypoints[i] - target
-        n = max(1, math.ceil(math.sqrt(step.dot(step)) / (speed * timestep)))  # np.linalg.norm's sum
-        rows.append(target + step * (np.arange(1, n + 1) / n)[:, None])
-        target = waypoints[i].copy()
-        if i in PUSH_SEGMENTS:
-            rows.append(np.repeat(rows[-1][-1:], TRACK_STEPS, axis=0))
-    return np.concatenate(rows)
+        n.append(max(1, math.ceil(math.sqrt(move.dot(move)) / (speed * timestep))))  # np.linalg.norm's
+        hold.append(TRACK_STEPS if i in PUSH_SEGMENTS else 0)
+    n = np.array(n)
+    count = n + hold
+    seg = np.repeat(np.arange(len(n)), count)  # the segment of each physics step
+    s = np.arange(len(seg)) - (np.cumsum(count) - count)[seg] + 1  # its step in the segment, 1-based
+    s = np.minimum(s, n[seg])  # a push's end held for TRACK_STEPS
+    return waypoints[:-1][seg] + moves[seg] * (s / n[seg])[:, None]
 
 
 @dataclass
@@ -187,6 +188,7 @@ class BinScene:
         )
         self._rollout = rollout.Rollout(nthread=0)  # runs on the calling thread
         self._poses: dict[str, tuple[bytes, np.ndarray]] = {}  # object_T's, by body
+        self._surface: tuple[bytes, np.ndarray] | None = None  # object_surface's
         self.reset()
 
     # --- state accessors -------------------------------------------------------------------------
@@ -216,6 +218,16 @@ class BinScene:
         adr = self.obj_qadr if body == "object" else self.clutter_qadr[int(body.removeprefix("clutter"))]
         q = self.data.qpos[adr : adr + 7]
         return q[:3].copy(), q[3:7].copy()
+
+    def object_surface(self) -> np.ndarray:
+        """The object's surface samples ``(P, 3)`` in the world frame at its pose (read-only): the
+        observation, the symmetric goal and the reward all read them, made once per pose."""
+        key = self.data.qpos[self.obj_qadr : self.obj_qadr + 7].tobytes()
+        if self._surface is None or self._surface[0] != key:
+            points = transform_points(self.object_T(), self.asset.surface_points)
+            points.flags.writeable = False
+            self._surface = (key, points)
+        return self._surface[1]
 
     def object_T(self, body: str = "object") -> np.ndarray:
         """``(4, 4)`` pose of a free body (a copy), made once per pose: the env reads it several times
