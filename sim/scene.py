@@ -49,6 +49,19 @@ SETTLE_LIN_VEL = 0.005  # m/s: at rest below this ...
 SETTLE_ANG_VEL = 0.05  # rad/s: ... and this
 
 
+def _at_rest(v: list[float]) -> bool:
+    """Whether every free body with velocities ``v`` (6 per body: linear, angular) is at rest: the
+    norms in np.linalg.norm's order (Python floats: the same IEEE operations, without numpy's
+    per-call overhead on a few numbers)."""
+    for i in range(0, len(v), 6):
+        a, b, c, x, y, z = v[i : i + 6]
+        if not (math.sqrt(a * a + b * b + c * c) < SETTLE_LIN_VEL):
+            return False
+        if not (math.sqrt(x * x + y * y + z * z) < SETTLE_ANG_VEL):
+            return False
+    return True
+
+
 def push_controls(waypoints: np.ndarray, timestep: float) -> np.ndarray:
     """The hand's position targets ``(T, 3)``, one per physics step, from the pre-contact waypoint
     ``waypoints[0]`` (where the hand starts) through the pushes (each followed by ``TRACK_STEPS`` at
@@ -279,11 +292,7 @@ class BinScene:
         while steps < n_max:
             mujoco.mj_step(m, d, nstep=chunk)
             steps += chunk
-            sq = np.square(qvel[free_dofs].reshape(-1, 6))
-            # the norms of the linear and angular velocities, summed in np.linalg.norm's order
-            if (np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2]) < SETTLE_LIN_VEL).all() and (
-                np.sqrt(sq[:, 3] + sq[:, 4] + sq[:, 5]) < SETTLE_ANG_VEL
-            ).all():
+            if _at_rest(qvel[free_dofs].tolist()):
                 calm += 1
                 if calm >= 2:
                     break
@@ -336,6 +345,17 @@ class BinScene:
         inputs[0, :, : m.nu] = controls
         warmstart = d.qacc_warmstart.copy()[None]
         states = np.empty((1, len(controls), initial.shape[1]))
+        sensordata = np.empty((1, len(controls), m.nsensordata))
+        # skip_checks: the arrays are made here with the shapes rollout's own checks would infer
         self._rollout.rollout(
-            m, d, initial, inputs, control_spec=_USER_STATE, initial_warmstart=warmstart, state=states
+            [m],
+            [d],
+            initial,
+            inputs,
+            control_spec=_USER_STATE,
+            skip_checks=True,
+            nstep=len(controls),
+            initial_warmstart=warmstart,
+            state=states,
+            sensordata=sensordata,
         )
