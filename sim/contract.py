@@ -92,7 +92,8 @@ class SymmetricGoals:
         if self.n <= 1:
             return
         self.goals = T_goal[None] @ symmetries  # (S, 4, 4)
-        self.probe = points_obj[:: max(1, len(points_obj) // SYMMETRY_PROBE_POINTS)]
+        probe = points_obj[:: max(1, len(points_obj) // SYMMETRY_PROBE_POINTS)]
+        self.probe = np.ascontiguousarray(probe, dtype=np.float64)  # as matmul casts it, once
         self._there_probe = self._there(self.goals, self.probe)  # (3, S, P_probe)
         self._there_all: dict[int, np.ndarray] = {}  # finalist -> (3, 1, P), made when first one
 

@@ -210,13 +210,16 @@ class BinScene:
         mujoco.mj_resetData(self.model, self.data)
         self.reset_hand()
 
-    def reset_hand(self) -> None:
-        """Park the hand (keyframe ``home``) without touching the rest of the state."""
+    def reset_hand(self, forward: bool = True) -> None:
+        """Park the hand (keyframe ``home``) without touching the rest of the state. ``forward=False``
+        leaves ``mj_forward`` to the ``mj_step`` that follows (it changes no state, only derived
+        quantities that step recomputes)."""
         d = self.data
         d.qpos[self.hand_qadr] = PARK_POS
         d.qvel[self.hand_dadr] = 0.0
         d.ctrl[:] = PARK_POS
-        mujoco.mj_forward(self.model, d)
+        if forward:
+            mujoco.mj_forward(self.model, d)
 
     def set_object_pose(self, pos: np.ndarray, quat_wxyz: np.ndarray, body: str = "object") -> None:
         adr = self.obj_qadr if body == "object" else self.clutter_qadr[int(body.removeprefix("clutter"))]
@@ -328,7 +331,7 @@ class BinScene:
         controls = push_controls(waypoints, m.opt.timestep)
         self._run_controls(controls)
         steps = len(controls)
-        self.reset_hand()
+        self.reset_hand(forward=False)  # settle steps at once
         steps += self.settle()
         return PrimitiveResult(True, "", steps)
 
