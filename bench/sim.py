@@ -4,11 +4,13 @@ Usage::
 
     python bench/sim.py                       # prints a table (~30-45 s)
     python bench/sim.py --json runs/bench-sim.json --seconds 10
+    python bench/sim.py --goals 6d            # env steps on 6D goals (flips: other contacts, settles)
 
 Figures (JSON keys; all single-process, ``OPENBLAS_NUM_THREADS=1``):
 
 - ``mesh_steps_per_s``: ``hydo/Bin-v0`` env steps per second with mesh observations, a random policy,
-  ``train`` objects and ``planar`` goals; reset time excluded and reported as ``reset_ms``.
+  ``train`` objects and ``--goals`` (default ``planar``, which the earlier figures used); reset
+  time excluded and reported as ``reset_ms``.
 - ``obs_mesh_ms``: one mesh observation (segmented clouds + the fixed-size observation).
 - ``render_ms_per_step``: one rendered observation (three 240x320 depth cameras, background
   subtraction, back-projection, normals) once the object's renderer exists; ``render_first_ms`` is
@@ -48,12 +50,13 @@ import numpy as np  # noqa: E402
 
 import sim.env  # noqa: E402, F401  (registers hydo/Bin-v0)
 from sim.atomic import atomic_write_text  # noqa: E402
+from sim.contract import GOAL_MODES  # noqa: E402
 from sim.primitive import SIM_WORKSPACE, PrimitiveRejected, check_plan, primitive_waypoints  # noqa: E402
 
 
-def bench_env_steps(seconds: float, seed: int) -> dict:
-    """Random-policy env steps (mesh observations) for ``seconds`` of stepping time."""
-    env = gymnasium.make("hydo/Bin-v0", objects="train", goals="planar", obs="mesh")
+def bench_env_steps(seconds: float, seed: int, goals: str = "planar") -> dict:
+    """Random-policy env steps (mesh observations, ``goals`` mode) for ``seconds`` of stepping time."""
+    env = gymnasium.make("hydo/Bin-v0", objects="train", goals=goals, obs="mesh")
     env.action_space.seed(seed)
     env.reset(seed=seed)  # builds the first scene; not timed
     steps, step_s, resets, reset_s = 0, 0.0, 0, 0.0
@@ -195,8 +198,9 @@ def write_json_atomic(path: Path, obj: dict) -> None:
 
 
 def print_table(results: dict) -> None:
+    goals = results.get("meta", {}).get("goals", "planar")
     rows = [
-        ("mesh_steps_per_s", "env steps/s (mesh obs, random policy, train, planar)", "{:.1f}"),
+        ("mesh_steps_per_s", f"env steps/s (mesh obs, random policy, train, {goals})", "{:.1f}"),
         ("reset_ms", "reset (ms)", "{:.2f}"),
         ("obs_mesh_ms", "mesh observation (ms)", "{:.3f}"),
         ("render_ms_per_step", "rendered observation, 3 cameras (ms, median)", "{:.1f}"),
@@ -231,13 +235,16 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
     parser.add_argument("--seconds", type=float, default=10.0, help="env stepping time for mesh_steps_per_s")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--goals", choices=GOAL_MODES, default="planar", help="goal mode of the env-steps figure"
+    )
     args = parser.parse_args(argv)
     if args.seconds <= 0:
         parser.error(f"--seconds must be > 0. Got {args.seconds}.")
 
     t0 = time.perf_counter()
     results: dict = {}
-    results.update(bench_env_steps(args.seconds, args.seed))
+    results.update(bench_env_steps(args.seconds, args.seed, args.goals))
     results.update(bench_primitives(n=30, seed=args.seed))
     results.update(bench_physics(seconds=min(3.0, args.seconds), seed=args.seed))
     results.update(bench_render(n_objects=4, per_object=8, seed=args.seed))
@@ -252,6 +259,7 @@ def main(argv: list[str] | None = None) -> dict:
         "cpu": platform.processor() or platform.machine(),
         "mujoco_gl": os.environ.get("MUJOCO_GL"),
         "seconds": args.seconds,
+        "goals": args.goals,
         "seed": args.seed,
         "wall_s": round(time.perf_counter() - t0, 1),
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),

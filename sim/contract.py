@@ -79,25 +79,75 @@ SYMMETRY_PROBE_POINTS = 256  # surface samples that rank the symmetric goals fir
 SYMMETRY_FINALISTS = 4  # ... and the best few, ranked again on all of them
 
 
+class SymmetricGoals:
+    """One goal's symmetric poses, ready to pick from: ``T_goal · S`` for the object's ``symmetries
+    (S, 4, 4)`` (object frame, the identity first) and where each puts the surface samples
+    ``points_obj (P, 3)`` (object frame). Fixed while the goal is: the env makes one per goal and asks
+    :meth:`nearest` in each state; :func:`symmetric_goal` is the one-off form."""
+
+    def __init__(self, T_goal: np.ndarray, points_obj: np.ndarray, symmetries: np.ndarray):
+        self.T_goal = T_goal
+        self.points_obj = points_obj
+        self.n = len(symmetries)
+        if self.n <= 1:
+            return
+        self.goals = T_goal[None] @ symmetries  # (S, 4, 4)
+        probe = points_obj[:: max(1, len(points_obj) // SYMMETRY_PROBE_POINTS)]
+        self.probe = np.ascontiguousarray(probe, dtype=np.float64)  # as matmul casts it, once
+        self._there_probe = self._there(self.goals, self.probe)  # (3, S, P_probe)
+        self._there_all: dict[int, np.ndarray] = {}  # finalist -> (3, 1, P), made when first one
+
+    @staticmethod
+    def _there(G: np.ndarray, pts: np.ndarray) -> np.ndarray:  # (K, 4, 4), (P, 3) -> (3, K, P)
+        """Where the goals ``G`` put the samples ``pts``, coordinate-major: the flows' differences
+        then run over contiguous rows."""
+        return np.ascontiguousarray((G[:, :3, :3] @ pts.T + G[:, :3, 3:]).transpose(1, 0, 2))
+
+    def nearest(self, T_obj: np.ndarray, points_world: np.ndarray | None = None) -> np.ndarray:
+        """The goal pose (4, 4) to use from ``T_obj``: the one whose mean goal flow over the surface
+        samples is smallest. Ranked on a strided subset first, then the finalists on all samples.
+        ``points_world``: the samples at ``T_obj`` (``transform_points(T_obj, points_obj)``) if the
+        caller has them."""
+        if self.n <= 1:
+            return self.T_goal
+
+        def mean_flow(there: np.ndarray, here: np.ndarray) -> np.ndarray:  # (3, K, P), (3, 1, P) -> (K,)
+            # np.linalg.norm(there - here, axis=1).mean(1) of the (K, 3, P) layout bit for bit (the
+            # same products and sums in the same order), ~7x faster than norm's middle-axis reduction
+            d = there - here
+            np.square(d, out=d)
+            sq = d[0] + d[1]
+            sq += d[2]
+            return np.sqrt(sq, out=sq).mean(1)
+
+        # the goal itself (symmetries[0], the identity) is always a finalist: never asked for more than it
+        def coordinate_major(points: np.ndarray) -> np.ndarray:  # (P, 3) -> (3, 1, P)
+            return np.ascontiguousarray(points.T)[:, None, :]
+
+        here = coordinate_major(transform_points(T_obj, self.probe))
+        ranked = np.argsort(mean_flow(self._there_probe, here))
+        finalists = sorted({0, *ranked[:SYMMETRY_FINALISTS].tolist()})
+        here = coordinate_major(
+            transform_points(T_obj, self.points_obj) if points_world is None else points_world
+        )
+        flows = []
+        for k in finalists:  # one at a time: the same flows as one batch, without stacking them
+            there = self._there_all.get(k)
+            if there is None:
+                there = self._there_all[k] = self._there(self.goals[k : k + 1], self.points_obj)
+            flows.append(mean_flow(there, here)[0])
+        return self.goals[finalists[int(np.argmin(flows))]].copy()
+
+
 def symmetric_goal(
     T_obj: np.ndarray, T_goal: np.ndarray, points_obj: np.ndarray, symmetries: np.ndarray
 ) -> np.ndarray:
     """The goal pose (4, 4) to use: of ``T_goal · S`` for the object's ``symmetries (S, 4, 4)``
     (object frame, the identity first), the one whose mean goal flow from ``T_obj`` over the surface
     samples ``points_obj (P, 3)`` (object frame) is smallest. Ranked on a strided subset first, then
-    the finalists on all samples (~0.3 ms for a cylinder's 72 symmetries)."""
-    if len(symmetries) <= 1:
-        return T_goal
-    goals = T_goal[None] @ symmetries  # (S, 4, 4)
-
-    def mean_flow(G: np.ndarray, pts: np.ndarray) -> np.ndarray:  # (K, 4, 4), (P, 3) -> (K,)
-        there = G[:, :3, :3] @ pts.T + G[:, :3, 3:]  # (K, 3, P)
-        return np.linalg.norm(there - transform_points(T_obj, pts).T, axis=1).mean(1)
-
-    probe = points_obj[:: max(1, len(points_obj) // SYMMETRY_PROBE_POINTS)]
-    # the goal itself (symmetries[0], the identity) is always a finalist: never asked for more than it
-    finalists = np.unique(np.r_[0, np.argsort(mean_flow(goals, probe))[:SYMMETRY_FINALISTS]])
-    return goals[finalists[int(np.argmin(mean_flow(goals[finalists], points_obj)))]]
+    the finalists on all samples (~0.3 ms for a cylinder's 72 symmetries; :class:`SymmetricGoals`
+    keeps what depends only on the goal, for picking in many states)."""
+    return SymmetricGoals(T_goal, points_obj, symmetries).nearest(T_obj)
 
 
 def goal_flow(points_world: np.ndarray, T_obj: np.ndarray, T_goal: np.ndarray) -> np.ndarray:
@@ -111,7 +161,9 @@ def goal_flow(points_world: np.ndarray, T_obj: np.ndarray, T_goal: np.ndarray) -
 
 def mean_flow_distance(points_world: np.ndarray, T_obj: np.ndarray, T_goal: np.ndarray) -> float:
     """Mean goal-flow norm in metres: the quantity the reward negates and success thresholds."""
-    return float(np.linalg.norm(goal_flow(points_world, T_obj, T_goal), axis=1).mean())
+    sq = np.square(goal_flow(points_world, T_obj, T_goal))
+    # the per-point norms summed as np.linalg.norm(..., axis=1) sums them, without its overhead
+    return float(np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2]).mean())
 
 
 def reward_and_success(points_world, T_obj, T_goal) -> tuple[float, bool, float]:
@@ -147,15 +199,16 @@ def build_observation(
     """
     io = resample(len(obj_points), n_obj, rng)
     ib = resample(len(bg_points), n_bg, rng)
-    p_obj = obj_points[io].astype(np.float32)
-    points = np.concatenate([p_obj, bg_points[ib].astype(np.float32)], axis=0)
+    obj_points, obj_normals, bg_points = (np.asarray(a) for a in (obj_points, obj_normals, bg_points))
+    p_obj = obj_points.take(io, axis=0).astype(np.float32)  # take: obj_points[io], faster
+    points = np.concatenate([p_obj, bg_points.take(ib, axis=0).astype(np.float32)], axis=0)
     features = np.zeros((n_obj + n_bg, FEATURE_DIM), dtype=np.float32)
     features[:n_obj, 0] = 1.0
     features[:n_obj, 1:] = goal_flow(p_obj, T_obj, T_goal)
     return {
         "points": points,
         "features": features,
-        "normals": obj_normals[io].astype(np.float32),
+        "normals": obj_normals.take(io, axis=0).astype(np.float32),
     }
 
 

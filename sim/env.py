@@ -48,11 +48,10 @@ from sim.contract import (
     GOAL_MODES,
     MAX_PRIMITIVES,
     OBS_SOURCES,
+    SymmetricGoals,
     build_observation,
     pose_matrix,
     reward_and_success,
-    symmetric_goal,
-    transform_points,
 )
 from sim.goals import (
     footprint_radius,
@@ -96,6 +95,7 @@ class BinEnv(gym.Env):
         self.goal_symmetry = goal_symmetry
         self._symmetries: dict[str, np.ndarray] = {}
         self._goal_key: tuple | None = None
+        self._goal_poses: tuple[tuple, SymmetricGoals] | None = None  # the goal's symmetric poses
         if goals not in GOAL_MODES:
             raise ValueError(f"`goals` must be one of {list(GOAL_MODES)}. Got {goals!r}.")
         if clutter not in CLUTTER_CHOICES:
@@ -164,12 +164,11 @@ class BinEnv(gym.Env):
             self._symmetries[asset.name] = (
                 symmetries(asset) if self.goal_symmetry == "object" else np.eye(4)[None]
             )
-        self.T_goal_eff = symmetric_goal(
-            T_obj,
-            self.T_goal,
-            asset.surface_points,
-            self._symmetries[asset.name],
-        )
+        goal_key = (asset.name, self.T_goal.tobytes())
+        if self._goal_poses is None or self._goal_poses[0] != goal_key:  # a new goal: once an episode
+            poses = SymmetricGoals(self.T_goal, asset.surface_points, self._symmetries[asset.name])
+            self._goal_poses = (goal_key, poses)
+        self.T_goal_eff = self._goal_poses[1].nearest(T_obj, self.scene.object_surface())
 
     def _observe(self) -> dict[str, np.ndarray]:
         self._refresh_goal()
@@ -183,8 +182,8 @@ class BinEnv(gym.Env):
     def _evaluate(self) -> tuple[float, bool, float]:
         """Reward, success and distance at the current pose."""
         self._refresh_goal()
-        pts = transform_points(self.scene.object_T(), self.scene.asset.surface_points)
-        return reward_and_success(pts, self.scene.object_T(), self.T_goal_eff)
+        T_obj = self.scene.object_T()
+        return reward_and_success(self.scene.object_surface(), T_obj, self.T_goal_eff)
 
     def _place_clutter(self, rng, obj_pos, obj_r) -> None:
         placed = [(obj_pos[:2], obj_r)]

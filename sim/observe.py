@@ -43,14 +43,17 @@ def bin_background_points() -> np.ndarray:
     return np.concatenate([floor, *walls]).astype(np.float32)
 
 
-def visible_surface(points_obj: np.ndarray, normals_obj: np.ndarray, T: np.ndarray):
-    """Surface samples (S, 3) and normals (S, 3) in the object frame -> the visible ones, world frame."""
-    p = transform_points(T, points_obj)
+def visible_surface(
+    points_obj: np.ndarray, normals_obj: np.ndarray, T: np.ndarray, points_world: np.ndarray | None = None
+):
+    """Surface samples (S, 3) and normals (S, 3) in the object frame -> the visible ones, world frame.
+    ``points_world``: the samples at ``T`` (``transform_points(T, points_obj)``) if the caller has them."""
+    p = transform_points(T, points_obj) if points_world is None else points_world
     n = normals_obj @ T[:3, :3].T
     keep = (n[:, 2] > HIDDEN_NORMAL_Z) & (p[:, 2] > BIN_FLOOR_Z + FLOOR_CONTACT_M)
     if keep.sum() < 8:  # degenerate view (e.g. mid-air): fall back to everything rather than nothing
-        keep[:] = True
-    return p[keep], n[keep]
+        return p.copy(), n  # a copy, as p[keep] would be (points_world may be a cache)
+    return p.compress(keep, axis=0), n.compress(keep, axis=0)  # p[keep], several times faster
 
 
 class MeshObserver:
@@ -61,7 +64,7 @@ class MeshObserver:
     def segmented_clouds(self, scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(obj_points (M, 3), obj_normals (M, 3), bg_points (L, 3))`` world frame, metres."""
         obj_p, obj_n = visible_surface(
-            scene.asset.surface_points, scene.asset.surface_normals, scene.object_T()
+            scene.asset.surface_points, scene.asset.surface_normals, scene.object_T(), scene.object_surface()
         )
         bg = [bin_background_points()]
         for i, c in enumerate(scene.clutter):

@@ -114,6 +114,8 @@ def check_plan(waypoints: np.ndarray, workspace: Workspace = SIM_WORKSPACE) -> N
     if not np.all(np.isfinite(w)):
         raise PrimitiveRejected("waypoints contain NaN or inf")
     lo, hi = np.asarray(workspace.low), np.asarray(workspace.high)
+    if (w >= lo - 1e-9).all() and (w <= hi + 1e-9).all():  # inside: no need to find which bound fails
+        return
     for i, wp in enumerate(w):
         for axis, name in enumerate("xyz"):
             if wp[axis] < lo[axis] - 1e-9:

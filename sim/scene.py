@@ -10,14 +10,16 @@ Frames and units: world frame, metres, quaternions wxyz. The bin floor's top is 
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
 import numpy as np
+from mujoco import rollout
 
-from sim.contract import pose_matrix
+from sim.contract import pose_matrix, transform_points
 from sim.objects import ObjectAsset
 from sim.primitive import BIN_INNER_SIZE_M, PUSH_SEGMENTS
 
@@ -29,6 +31,11 @@ PANDA_ASSETS = ASSETS / "panda"
 # What get_state/set_state carry: MuJoCo's full integration state. qpos/qvel/ctrl alone leave out the
 # solver's warm start, and a push replayed from such a state ended up to 6.6 cm elsewhere.
 _FULL_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
+# A primitive's open-loop stretch runs in one ``mujoco.rollout`` call (no Python per physics step):
+# from the physics state and warm start, with the user inputs (controls, mocap poses, applied forces)
+# set at every step, the same mj_step calls as a Python loop that sets ``ctrl``, bit for bit.
+_PHYSICS_STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
+_USER_STATE = mujoco.mjtState.mjSTATE_USER  # ctrl comes first in it
 PARK_POS = np.array([0.0, 0.0, 1.5])  # hand parked far above the bin, outside every camera's view
 
 OBJECT_DENSITY = 400.0  # kg/m^3, light wood/plastic: a 10 cm object weighs 0.1-0.4 kg
@@ -40,6 +47,38 @@ START_PENETRATION_M = 0.003  # a teleported start deeper than this inside someth
 SETTLE_MAX_S = 1.5  # cap on waiting for the object to come to rest
 SETTLE_LIN_VEL = 0.005  # m/s: at rest below this ...
 SETTLE_ANG_VEL = 0.05  # rad/s: ... and this
+
+
+def _at_rest(v: list[float]) -> bool:
+    """Whether every free body with velocities ``v`` (6 per body: linear, angular) is at rest: the
+    norms in np.linalg.norm's order (Python floats: the same IEEE operations, without numpy's
+    per-call overhead on a few numbers)."""
+    for i in range(0, len(v), 6):
+        a, b, c, x, y, z = v[i : i + 6]
+        if not (math.sqrt(a * a + b * b + c * c) < SETTLE_LIN_VEL):
+            return False
+        if not (math.sqrt(x * x + y * y + z * z) < SETTLE_ANG_VEL):
+            return False
+    return True
+
+
+def push_controls(waypoints: np.ndarray, timestep: float) -> np.ndarray:
+    """The hand's position targets ``(T, 3)``, one per physics step, from the pre-contact waypoint
+    ``waypoints[0]`` (where the hand starts) through the pushes (each followed by ``TRACK_STEPS`` at
+    its end) to the retract lift ``waypoints[-1]``: straight lines at ``APPROACH_SPEED`` or
+    ``PUSH_SPEED``, the target interpolated at each step (``start + (end - start) · s / n``)."""
+    moves = np.diff(waypoints, axis=0)  # segment i + 1 runs from waypoint i by moves[i]
+    n, hold = [], []
+    for i, move in enumerate(moves, start=1):  # the last: the 6 cm lift off the object
+        speed = PUSH_SPEED if i in PUSH_SEGMENTS else APPROACH_SPEED
+        n.append(max(1, math.ceil(math.sqrt(move.dot(move)) / (speed * timestep))))  # np.linalg.norm's
+        hold.append(TRACK_STEPS if i in PUSH_SEGMENTS else 0)
+    n = np.array(n)
+    count = n + hold
+    seg = np.repeat(np.arange(len(n)), count)  # the segment of each physics step
+    s = np.arange(len(seg)) - (np.cumsum(count) - count)[seg] + 1  # its step in the segment, 1-based
+    s = np.minimum(s, n[seg])  # a push's end held for TRACK_STEPS
+    return waypoints[:-1][seg] + moves[seg] * (s / n[seg])[:, None]
 
 
 @dataclass
@@ -156,6 +195,13 @@ class BinScene:
         self.goal_mocap = m.body_mocapid[m.body("goal").id]
         hand_body = m.body("hand").id
         self.hand_geoms = np.flatnonzero(m.geom_bodyid == hand_body)
+        self._is_hand_geom = m.geom_bodyid == hand_body  # by geom id
+        self.free_dofs = np.concatenate(  # the free bodies' dofs: settle waits for them to rest
+            [np.arange(m.jnt_dofadr[j], m.jnt_dofadr[j] + 6) for j in np.flatnonzero(m.jnt_type == 0)]
+        )
+        self._rollout = rollout.Rollout(nthread=0)  # runs on the calling thread
+        self._poses: dict[str, tuple[bytes, np.ndarray]] = {}  # object_T's, by body
+        self._surface: tuple[bytes, np.ndarray] | None = None  # object_surface's
         self.reset()
 
     # --- state accessors -------------------------------------------------------------------------
@@ -164,13 +210,16 @@ class BinScene:
         mujoco.mj_resetData(self.model, self.data)
         self.reset_hand()
 
-    def reset_hand(self) -> None:
-        """Park the hand (keyframe ``home``) without touching the rest of the state."""
+    def reset_hand(self, forward: bool = True) -> None:
+        """Park the hand (keyframe ``home``) without touching the rest of the state. ``forward=False``
+        leaves ``mj_forward`` to the ``mj_step`` that follows (it changes no state, only derived
+        quantities that step recomputes)."""
         d = self.data
         d.qpos[self.hand_qadr] = PARK_POS
         d.qvel[self.hand_dadr] = 0.0
         d.ctrl[:] = PARK_POS
-        mujoco.mj_forward(self.model, d)
+        if forward:
+            mujoco.mj_forward(self.model, d)
 
     def set_object_pose(self, pos: np.ndarray, quat_wxyz: np.ndarray, body: str = "object") -> None:
         adr = self.obj_qadr if body == "object" else self.clutter_qadr[int(body.removeprefix("clutter"))]
@@ -186,8 +235,25 @@ class BinScene:
         q = self.data.qpos[adr : adr + 7]
         return q[:3].copy(), q[3:7].copy()
 
+    def object_surface(self) -> np.ndarray:
+        """The object's surface samples ``(P, 3)`` in the world frame at its pose (read-only): the
+        observation, the symmetric goal and the reward all read them, made once per pose."""
+        key = self.data.qpos[self.obj_qadr : self.obj_qadr + 7].tobytes()
+        if self._surface is None or self._surface[0] != key:
+            points = transform_points(self.object_T(), self.asset.surface_points)
+            points.flags.writeable = False
+            self._surface = (key, points)
+        return self._surface[1]
+
     def object_T(self, body: str = "object") -> np.ndarray:
-        return pose_matrix(*self.object_pose(body))
+        """``(4, 4)`` pose of a free body (a copy), made once per pose: the env reads it several times
+        in one state (goal, reward, observation)."""
+        adr = self.obj_qadr if body == "object" else self.clutter_qadr[int(body.removeprefix("clutter"))]
+        key = self.data.qpos[adr : adr + 7].tobytes()
+        cached = self._poses.get(body)
+        if cached is None or cached[0] != key:
+            cached = self._poses[body] = (key, pose_matrix(*self.object_pose(body)))
+        return cached[1].copy()
 
     def set_goal_ghost(self, pos: np.ndarray, quat_wxyz: np.ndarray) -> None:
         self.data.mocap_pos[self.goal_mocap] = pos
@@ -225,16 +291,11 @@ class BinScene:
         n_max = int(max_s / m.opt.timestep)
         steps = 0
         calm = 0
-        free_dofs = np.concatenate(
-            [np.arange(m.jnt_dofadr[j], m.jnt_dofadr[j] + 6) for j in np.flatnonzero(m.jnt_type == 0)]
-        )
+        free_dofs, qvel = self.free_dofs, d.qvel
         while steps < n_max:
             mujoco.mj_step(m, d, nstep=chunk)
             steps += chunk
-            v = d.qvel[free_dofs].reshape(-1, 6)
-            if np.all(np.linalg.norm(v[:, :3], axis=1) < SETTLE_LIN_VEL) and np.all(
-                np.linalg.norm(v[:, 3:], axis=1) < SETTLE_ANG_VEL
-            ):
+            if _at_rest(qvel[free_dofs].tolist()):
                 calm += 1
                 if calm >= 2:
                     break
@@ -247,8 +308,7 @@ class BinScene:
         d = self.data
         if d.ncon == 0:
             return 0.0
-        geoms = d.contact.geom[: d.ncon]
-        hand = np.isin(geoms, self.hand_geoms).any(axis=1)
+        hand = self._is_hand_geom[d.contact.geom[: d.ncon]].any(axis=1)
         return float(max(0.0, -d.contact.dist[: d.ncon][hand].min())) if hand.any() else 0.0
 
     def execute_primitive(self, waypoints: np.ndarray) -> PrimitiveResult:
@@ -267,29 +327,38 @@ class BinScene:
         if self._hand_penetration() > START_PENETRATION_M:
             self.set_state(saved)
             return PrimitiveResult(False, "start pose in collision")
-        steps = 0
-        dt = m.opt.timestep
-        target = waypoints[0].copy()
-        # The retract waypoint is replaced by parking: it only lifts the hand off the object.
-        for i in range(1, len(waypoints) - 1):
-            speed = PUSH_SPEED if i in PUSH_SEGMENTS else APPROACH_SPEED
-            n = max(1, int(np.ceil(np.linalg.norm(waypoints[i] - target) / (speed * dt))))
-            start = target
-            for s in range(1, n + 1):
-                d.ctrl[:] = start + (waypoints[i] - start) * (s / n)
-                mujoco.mj_step(m, d)
-            steps += n
-            target = waypoints[i].copy()
-            if i in PUSH_SEGMENTS:
-                mujoco.mj_step(m, d, nstep=TRACK_STEPS)
-                steps += TRACK_STEPS
-        # Retract: lift 6 cm at approach speed so the hand leaves the object gently, then park.
-        lift = waypoints[-1]
-        n = max(1, int(np.ceil(np.linalg.norm(lift - target) / (APPROACH_SPEED * dt))))
-        for s in range(1, n + 1):
-            d.ctrl[:] = target + (lift - target) * (s / n)
-            mujoco.mj_step(m, d)
-        steps += n
-        self.reset_hand()
+        # approach, pushes, then lift 6 cm so the hand leaves the object gently; then park
+        controls = push_controls(waypoints, m.opt.timestep)
+        self._run_controls(controls)
+        steps = len(controls)
+        self.reset_hand(forward=False)  # settle steps at once
         steps += self.settle()
         return PrimitiveResult(True, "", steps)
+
+    def _run_controls(self, controls: np.ndarray) -> None:
+        """``mj_step`` once per row of ``controls (T, nu)``, each row set as ``ctrl`` first; the other
+        user inputs (mocap poses, applied forces) stay as they are. One ``mujoco.rollout`` call: the
+        same steps as that Python loop, bit for bit, without its per-step overhead."""
+        m, d = self.model, self.data
+        initial = np.empty((1, mujoco.mj_stateSize(m, _PHYSICS_STATE)))
+        mujoco.mj_getState(m, d, initial[0], _PHYSICS_STATE)
+        user = np.empty(mujoco.mj_stateSize(m, _USER_STATE))
+        mujoco.mj_getState(m, d, user, _USER_STATE)
+        inputs = np.tile(user, (1, len(controls), 1))
+        inputs[0, :, : m.nu] = controls
+        warmstart = d.qacc_warmstart.copy()[None]
+        states = np.empty((1, len(controls), initial.shape[1]))
+        sensordata = np.empty((1, len(controls), m.nsensordata))
+        # skip_checks: the arrays are made here with the shapes rollout's own checks would infer
+        self._rollout.rollout(
+            [m],
+            [d],
+            initial,
+            inputs,
+            control_spec=_USER_STATE,
+            skip_checks=True,
+            nstep=len(controls),
+            initial_warmstart=warmstart,
+            state=states,
+            sensordata=sensordata,
+        )

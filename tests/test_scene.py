@@ -92,3 +92,32 @@ def test_primitive_pushes_the_object():
     assert 0.07 < pos[0] < 0.12, pos  # 9 cm push plus a little sliding after it
     assert abs(pos[1]) < 0.01
     assert scene.object_speed()[0] < 0.01  # settled
+
+
+def test_primitive_rollout_is_the_python_stepping_loop_bit_for_bit():
+    """The primitive's open loop runs in one mujoco.rollout call; it must be the same mj_step calls
+    as setting ctrl and stepping in Python (the loop it replaced), to the last bit of the full
+    integration state (mocap poses and warm start included)."""
+    from sim.scene import push_controls
+
+    scene = BinScene(load_objects("box_00")[0])
+    scene.set_object_pose(np.array([0.0, 0.0, 0.03]), np.array([1.0, 0, 0, 0]))
+    scene.set_goal_ghost(np.array([0.1, 0.05, 0.03]), np.array([0.0, 0, 0, 1.0]))
+    scene.settle()
+    w = primitive_waypoints(np.array([-0.04, 0.0, 0.02]), np.array([-1.0, 0, 0]), np.array([0.8, 0.3, 0]))
+    controls = push_controls(w, scene.model.opt.timestep)
+    # the targets: straight lines, each push's end held for TRACK_STEPS, ending at the lift
+    assert np.array_equal(controls[-1], w[-1]) and len(controls) > 100
+    m, d = scene.model, scene.data
+    d.qpos[scene.hand_qadr] = w[0]
+    d.ctrl[:] = w[0]
+    mujoco.mj_forward(m, d)
+    start = scene.get_state()
+    for row in controls:
+        d.ctrl[:] = row
+        mujoco.mj_step(m, d)
+    want = scene.get_state()
+    scene.set_state(start)
+    scene._run_controls(controls)
+    assert np.array_equal(scene.get_state(), want)
+    assert np.abs(scene.object_pose()[0] - start[1 + scene.obj_qadr : 4 + scene.obj_qadr]).max() > 0.01

@@ -116,3 +116,41 @@ def test_6d_episodes_start_away_from_the_goal_up_to_symmetry():
     distances = [env.reset(seed=s)[1]["distance"] for s in range(40)]
     assert GOAL_TRIES > 1 and min(distances) > MIN_GOAL_DISTANCE_M
     env.close()
+
+
+def test_symmetric_goals_pick_as_the_plain_formula_bit_for_bit():
+    """SymmetricGoals (the env's per-goal cache, coordinate-major, without np.linalg.norm) picks the
+    same goal as the plain formula: rank T_goal·S on a strided subset by mean flow, then the best
+    few and the goal itself on all samples."""
+    from sim.contract import SYMMETRY_FINALISTS, SYMMETRY_PROBE_POINTS, SymmetricGoals
+
+    def plain(T_obj, T_goal, pts, S):
+        goals = T_goal[None] @ S
+
+        def mean_flow(G, p):
+            return np.linalg.norm(
+                G[:, :3, :3] @ p.T + G[:, :3, 3:] - transform_points(T_obj, p).T, axis=1
+            ).mean(1)
+
+        probe = pts[:: max(1, len(pts) // SYMMETRY_PROBE_POINTS)]
+        finalists = np.unique(np.r_[0, np.argsort(mean_flow(goals, probe))[:SYMMETRY_FINALISTS]])
+        return goals[finalists[int(np.argmin(mean_flow(goals[finalists], pts)))]]
+
+    rng = np.random.default_rng(0)
+    for name in ("cylinder_00", "box_00", "cube"):
+        (asset,) = load_objects(name)
+        S = symmetries(asset)
+        T_goal = pose_matrix(rng.uniform(-0.1, 0.1, 3), rng.normal(size=4))
+        goals = SymmetricGoals(T_goal, asset.surface_points, S)
+        for k in range(30):
+            T_obj = pose_matrix(rng.uniform(-0.1, 0.1, 3), rng.normal(size=4))
+            if k % 3 == 0:  # near one of the symmetric goals: close finalists
+                T_obj = (
+                    T_goal
+                    @ S[rng.integers(len(S))]
+                    @ pose_matrix(rng.normal(0, 0.003, 3), [1, *rng.normal(0, 0.02, 3)])
+                )
+            want = plain(T_obj, T_goal, asset.surface_points, S)
+            assert np.array_equal(goals.nearest(T_obj), want)
+            assert np.array_equal(goals.nearest(T_obj, transform_points(T_obj, asset.surface_points)), want)
+            assert np.array_equal(symmetric_goal(T_obj, T_goal, asset.surface_points, S), want)
