@@ -78,7 +78,7 @@ def run_loop(name: str, args: argparse.Namespace, folder: Path, src: Path = ROOT
         f'goals = "{args.goals}"\nobjects = "{args.objects}"\nsteps = 1000000000\n'
         f"max_minutes = {args.seconds / 60}\neval_every = 0\neval_episodes = 1\n"
         f"checkpoint_every = 1000000000\nlog_every = {args.log_every}\n"
-        + "".join(f"{line}\n" for line in args.set)
+        + "".join(f"{line}\n" for line in args.set + (args.set_default if name == "default" else []))
     )
     run = folder / name_tag
     cmd = [sys.executable, "-m", "hydo_cli.main", "train", "--config", str(toml), "--out", str(run)]
@@ -125,6 +125,13 @@ def main() -> None:
     ap.add_argument("--log-every", type=int, default=200, help="env steps between metric rows")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra TOML line")
     ap.add_argument(
+        "--set-default",
+        action="append",
+        default=[],
+        metavar="LINE",
+        help="extra TOML line for the default layout only (with --baseline: a setting to weigh against it)",
+    )
+    ap.add_argument(
         "--baseline",
         metavar="REV",
         help="compare the default layout against this commit's code (a git revision) instead of serial",
@@ -167,6 +174,7 @@ def main() -> None:
         "goals": args.goals,
         "objects": args.objects,
         "set": args.set,
+        "set_default": args.set_default,
         "baseline": args.baseline,
         "repeats": args.repeats if args.baseline else 1,
         "cpus": os.cpu_count(),
