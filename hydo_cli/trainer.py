@@ -184,13 +184,11 @@ class Trainer:
 
     def shard_paths(self, rank: int) -> tuple[Path, Path]:
         """Worker ``rank``'s replay snapshot and (rank > 0) its own state file."""
-        if rank == 0:
-            return self.run_dir / "replay.npz", self.checkpoint_path
-        return self.run_dir / f"replay-{rank}.npz", self.run_dir / f"worker-{rank}.pt"
+        return shard_files(self.run_dir, rank)
 
     def segment_path(self, rank: int, seq: int) -> Path:
-        """Worker ``rank``'s replay segment of save ``seq`` (``replay.s00012.npz``, ``replay-1.s00012.npz``)."""
-        return self.shard_paths(rank)[0].with_suffix(f".s{seq:05d}.npz")
+        """Worker ``rank``'s replay segment of save ``seq``."""
+        return segment_file(self.run_dir, rank, seq)
 
     def _save_replay(self) -> dict:
         """This worker's shard: a whole snapshot when due (the first save, after a resume that could
@@ -284,8 +282,9 @@ class Trainer:
         self.generator.set_state(state["generator"])
         self.rng.bit_generator.state = json.loads(state["np_rng"])
         if replay.exists():
-            self.buffer = load_replay(replay, self.cfg.n_obj, self.cfg.n_bg)
-            self._continue_segments(state)
+            self.buffer, log = load_shard(self.run_dir, self.rank, state, self.cfg.n_obj, self.cfg.n_bg)
+            self.replay_seq, self.replay_snapshot_seq = log["replay_seq"], log["replay_snapshot_seq"]
+            self.replay_logged, self.replay_snapshot_due = log["replay_logged"], not log["continued"]
             # the shard was saved just before the checkpoint: a cut in between leaves it ahead
             at = tuple(ckpt.get("replay_at", (self.buffer.pos, self.buffer.full)))
             if (self.buffer.pos, self.buffer.full) != (at[0], bool(at[1])):
@@ -298,21 +297,6 @@ class Trainer:
             )
         if self.rank == 0:
             truncate_logs(self.run_dir, self.env_steps)
-
-    def _continue_segments(self, state: dict) -> None:
-        """After loading the snapshot: apply the segments this worker's state says were saved after
-        it, in order, and carry on numbering from there. A run from before segments (no
-        ``replay_seq``), or a snapshot newer than the state (a cut between the two), takes no segment
-        and writes a whole snapshot at its next save."""
-        seq, snap = state.get("replay_seq"), self.buffer.snapshot_seq
-        if seq is None or snap is None or snap > int(seq):
-            self.replay_seq = max(int(seq or 0), snap or 0)
-            return
-        for k in range(snap + 1, int(seq) + 1):
-            apply_replay_segment(self.buffer, self.segment_path(self.rank, k))
-        self.replay_seq, self.replay_snapshot_seq = int(seq), snap
-        self.replay_logged = int(state.get("replay_logged", 0))
-        self.replay_snapshot_due = False
 
     def check_resumable(self, fresh_replay: bool) -> None:
         """Worker 0, before spawning the others: every worker's files are there (so no worker fails
@@ -577,6 +561,36 @@ class Trainer:
             f"eval @ {self.env_steps} steps ({row['wall_s'] / 60:.1f} min): success {row['success_rate']:.0%} "
             f"over {row['episodes']} episodes, return {row['mean_return']:.3f}"
         )
+
+
+def shard_files(run_dir: Path, rank: int) -> tuple[Path, Path]:
+    """Worker ``rank``'s replay snapshot and the file that records its state (``checkpoint.pt`` for
+    worker 0, ``worker-r.pt`` for the others)."""
+    if rank == 0:
+        return run_dir / "replay.npz", run_dir / "checkpoint.pt"
+    return run_dir / f"replay-{rank}.npz", run_dir / f"worker-{rank}.pt"
+
+
+def segment_file(run_dir: Path, rank: int, seq: int) -> Path:
+    """Worker ``rank``'s replay segment of save ``seq`` (``replay.s00012.npz``, ``replay-1.s00012.npz``)."""
+    return shard_files(run_dir, rank)[0].with_suffix(f".s{seq:05d}.npz")
+
+
+def load_shard(run_dir: Path, rank: int, state: dict, n_obj: int, n_bg: int) -> tuple[ReplayBuffer, dict]:
+    """Worker ``rank``'s replay shard as its ``state`` (checkpoint or worker state) last saved it: the
+    snapshot, then, in order, the segments saved after it. Returns the buffer and where the segment log
+    stands (``replay_seq``, ``replay_snapshot_seq``, ``replay_logged``, ``continued``). A run from
+    before segments (no ``replay_seq``), or a snapshot newer than the state (a cut between the two),
+    takes no segment: ``continued`` is False and the next save must write a whole snapshot."""
+    buffer = load_replay(shard_files(run_dir, rank)[0], n_obj, n_bg)
+    seq, snap = state.get("replay_seq"), buffer.snapshot_seq
+    if seq is None or snap is None or snap > int(seq):
+        top = max(int(seq or 0), snap or 0)
+        return buffer, {"replay_seq": top, "replay_snapshot_seq": top, "replay_logged": 0, "continued": False}
+    for k in range(snap + 1, int(seq) + 1):
+        apply_replay_segment(buffer, segment_file(run_dir, rank, k))
+    log = {"replay_seq": int(seq), "replay_snapshot_seq": snap, "continued": True}
+    return buffer, {**log, "replay_logged": int(state.get("replay_logged", 0))}
 
 
 def _snapshot_seq(path: Path) -> int | None:

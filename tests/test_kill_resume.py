@@ -60,9 +60,17 @@ def logged_steps(run: Path, name: str) -> list[int]:
 
 
 def replay_size(run: Path) -> int:
-    return sum(
-        int(np.load(p)["meta"][3]) for p in run.glob("replay*.npz")
-    )  # meta: capacity, n_obj, n_bg, pos, full
+    """Transitions in every worker's shard, rebuilt as ``--resume`` rebuilds it (snapshot + segments)."""
+    from hydo_cli.trainer import load_shard, read_worker_state, shard_files
+    from models.checkpoint import load_checkpoint
+
+    total, rank = 0, 0
+    while shard_files(run, rank)[0].exists():
+        state_path = shard_files(run, rank)[1]
+        state = load_checkpoint(state_path) if rank == 0 else read_worker_state(state_path)
+        total += len(load_shard(run, rank, state, 32, 32)[0])
+        rank += 1
+    return total
 
 
 @pytest.mark.slow
