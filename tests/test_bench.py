@@ -58,3 +58,27 @@ def test_bench_script_runs(script, tmp_path):
     assert "Traceback" not in r.stderr
     data = json.loads(out.read_text())
     assert data and check(data), data
+
+
+@pytest.mark.slow
+def test_trainer_bench_against_a_baseline_commit(tmp_path):
+    """``bench/trainer.py --baseline REV`` runs REV's loop (a temporary git worktree, removed again)
+    beside this tree's and reports sample-gradients/h for both."""
+    args, _ = CASES["trainer.py"]
+    out = tmp_path / "bench.json"
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "trainer.py"), *args, "--baseline", "HEAD", "--json", str(out)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    data = json.loads(out.read_text())
+    assert set(data["runs"]) == {"baseline", "default"} and data["meta"]["baseline"] == "HEAD"
+    for name in ("baseline", "default"):
+        row = data[name]
+        assert row["sample_gradients_per_hour"] == pytest.approx(row["updates_per_hour"] * row["batch_size"])
+        assert row["updates_per_env_step"] == pytest.approx(0.5, rel=0.2)
+    worktrees = subprocess.run(["git", "-C", str(ROOT), "worktree", "list"], capture_output=True, text=True)
+    assert "baseline-src" not in worktrees.stdout
