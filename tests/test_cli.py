@@ -1,6 +1,7 @@
 """The ``hydo`` command line: help, baselines, and one-line errors with non-zero exits."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,12 +18,16 @@ MODEL = str(ROOT / "models" / "hydo-cm-planar")  # an existing export: never ove
 
 
 def hydo(*args, cwd=None):
-    """Run the real console entry point (``main``), which maps known errors to one line."""
+    """Run the real console entry point (``main``), which maps known errors to one line, as a user's
+    shell would: from any folder (``cwd``), this checkout's packages, no ``HYDO_DEBUG`` tracebacks."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env.pop("HYDO_DEBUG", None)
     return subprocess.run(
-        [sys.executable, "-c", "from hydo_cli.main import main; main()", *args],
+        [sys.executable, "-c", "from hydo_cli.main import main; main()", *map(str, args)],
         capture_output=True,
         text=True,
         cwd=cwd,
+        env=env,
         timeout=300,
     )
 

@@ -23,10 +23,7 @@ from __future__ import annotations
 import copy
 import json
 import math
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -35,6 +32,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from hydo_cli.errors import HydoError, known_errors
+from tests.test_cli import hydo
 
 ROOT = Path(__file__).resolve().parent.parent
 MODEL = ROOT / "models" / "hydo-cm-planar"
@@ -307,19 +305,6 @@ def cli_cases(kind: str) -> list[tuple[dict, str]]:
     return found
 
 
-def hydo_subprocess(args: list, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    env.pop("HYDO_DEBUG", None)
-    return subprocess.run(
-        [sys.executable, "-m", "hydo_cli.main", *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        env=env,
-        timeout=300,
-    )
-
-
 def snapshot(folder: Path) -> dict[str, bytes]:
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
@@ -358,7 +343,7 @@ def test_cli(kind, tmp_path):
         tmp.mkdir()
         args, user = cli_setup(kind, doc, tmp)
         before = snapshot(user)
-        r = hydo_subprocess(args, tmp)
+        r = hydo(*args, cwd=tmp)
         lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
         assert r.returncode == 1, (why, r.returncode, r.stderr[-2000:])
         assert "Traceback" not in r.stderr, (why, r.stderr[-2000:])
