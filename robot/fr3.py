@@ -18,6 +18,7 @@ included, also carries the cell's deadline ``REL_TIME > motion_timeout_s`` → s
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 
@@ -28,6 +29,7 @@ from robot.libfranka import classify_errors, error_names, fingertip_to_ee
 
 GLOBAL_DYNAMICS_FACTOR = 0.1  # franky's examples use 0.05-0.1; every move scales below this
 JOINT_MOVE_FACTOR = 0.5  # of the global factor, for the joint move home
+PLANNER_RETRY_PAUSE_S = 0.3  # s, before replanning a free-space move franky's planner failed on
 MODES = {
     "Other": RobotMode.other,
     "Idle": RobotMode.idle,
@@ -163,7 +165,8 @@ class FR3Executor(Executor):
             return MoveResult(Outcome.reflex, pos, 0.0, (), f"{what}: robot latched in reflex")
         return MoveResult(classify_errors(errors), pos, 0.0, errors, f"{what}: {e}")
 
-    def _move(self, command: Command) -> MoveResult:
+    def _motion(self, command: Command):
+        """franky's motion for ``command`` with its reactions, and the events they set."""
         fr = self._fr
         lim = self.cell.limits
         fired, timed_out = threading.Event(), threading.Event()
@@ -193,12 +196,39 @@ class FR3Executor(Executor):
         deadline = fr.Reaction(M.REL_TIME > lim.motion_timeout, stop)
         deadline.register_callback(lambda *_: timed_out.set())
         motion.add_reaction(deadline)
-        try:
-            self.robot.move(motion)
-        except Exception as e:  # ControlException (reflex, limits), NetworkException, CommandException
-            if isinstance(e, fr.Exception):
-                return self._classify(e, command.label)
-            raise
+        return motion, fired, timed_out
+
+    def _move(self, command: Command) -> MoveResult:
+        fr = self._fr
+        lim = self.cell.limits
+        # franky's trajectory generator (ruckig) can fail to plan from the state the arm is in (seen
+        # on franky-sim as `RuntimeError: Motion planner failed with error code -111`, a
+        # synchronisation failure when a move starts while the arm still drifts after the last one).
+        # It is not a robot error: no flag is set and the arm holds. A free-space move is replanned
+        # once, to the same gate-checked target, after a pause; a contact move is not, since a
+        # second push is a different interaction. A second failure ends the move short of its goal,
+        # so the loop retracts (checked) and goes on, never a traceback.
+        for attempt in (1, 2):
+            motion, fired, timed_out = self._motion(command)
+            try:
+                self.robot.move(motion)
+                break
+            except Exception as e:  # ControlException (reflex, limits), NetworkException, CommandException
+                if isinstance(e, fr.Exception):
+                    return self._classify(e, command.label)
+                if not isinstance(e, RuntimeError) or "planner" not in str(e).lower():
+                    raise
+                if attempt == 2 or command.in_contact or self.robot_mode() is not RobotMode.idle:
+                    return MoveResult(
+                        Outcome.short_of_goal,
+                        self.fingertip(),
+                        0.0,
+                        (),
+                        f"{command.label}: franky's motion planner failed ({e})",
+                    )
+                if self.log is not None:
+                    self.log.event("planner_retry", label=command.label, error=str(e))
+                time.sleep(PLANNER_RETRY_PAUSE_S)
         here = self.fingertip()
         if timed_out.is_set():
             return MoveResult(

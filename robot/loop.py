@@ -547,10 +547,13 @@ class Deployment:
                     "move it there first"
                 )
             else:
+                # A frame's age counts from when it was asked for, not from when the last camera
+                # answered: cameras capture one after another, and a slow one (or a loaded host)
+                # must not make the first camera's fresh frame look stale.
+                asked = time.time()
                 frames = cameras.capture()
-                now = time.time()
                 motion_end = robot.last_motion_end if robot is not None else 0.0
-                stale = [f for f in frames if f.timestamp <= motion_end or now - f.timestamp > max_age]
+                stale = [f for f in frames if f.timestamp <= motion_end or asked - f.timestamp > max_age]
                 if not stale:
                     return frames
                 problem = f"camera {stale[0].serial} delivered a stale frame (older than the last motion or {max_age:g} s)"

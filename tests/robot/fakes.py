@@ -538,7 +538,9 @@ class FrankyScript:
     """What the fake FR3 does; moves are numbered from 1. ``faults``: move → ``"reflex"``
     (``ControlException``), ``"force"`` (the force reaction fires and ``move`` returns normally, as
     franky's reactions do), ``"deadline"`` (the time reaction fires halfway, likewise),
-    ``"comm_lost"`` (``NetworkException``). ``absent``: connecting fails."""
+    ``"comm_lost"`` (``NetworkException``), ``"planner"`` (franky's trajectory generator fails part-way
+    with a plain ``RuntimeError``, no error flag, as franky-sim does now and then). ``absent``:
+    connecting fails."""
 
     faults: dict[int, str] = field(default_factory=dict)
     absent: bool = False
@@ -704,6 +706,9 @@ def fake_franky(cell, script: FrankyScript | None = None):
                 self.ee = self.home_ee.copy()
                 return
             target = motion.target.matrix
+            if fault == "planner":
+                self.ee[:3, 3] = (self.ee[:3, 3] + target[:3, 3]) / 2
+                raise RuntimeError("Motion planner failed with error code -111")
             if fault in ("force", "deadline"):  # the reaction fires halfway: franky returns normally
                 self.ee[:3, 3] = (self.ee[:3, 3] + target[:3, 3]) / 2
                 measure = "F_x" if fault == "force" else "t_rel"

@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 
 import numpy as np
 import pytest
@@ -94,6 +95,28 @@ def test_one_stale_frame_is_discarded_and_recaptured(rig, monkeypatch):
     push_towards_robot(dep)
     rig.run(monkeypatch, dep, camera_script=["stale"])
     assert len(events(rig, "frame_discarded")) == 1 and len(events(rig, "outcome")) == 1
+
+
+def test_slow_cameras_do_not_make_the_first_frame_stale(rig, monkeypatch):
+    # Cameras answer one after another; on a loaded host the later ones can take longer than the
+    # frame-age limit. The first camera's frame was fresh when it was asked for: keep it.
+    import fakes
+
+    plain = fakes.ScriptedCamera.capture
+    n_cams = len(rig.cell.cameras)
+    pause = 1.2 * rig.cell.perception.max_frame_age / max(n_cams - 1, 1)
+
+    def slow_capture(cam):
+        frame = plain(cam)
+        if cam is not rig.cams[0]:
+            time.sleep(pause)
+        return frame
+
+    monkeypatch.setattr(fakes.ScriptedCamera, "capture", slow_capture)
+    dep = rig.deployment(max_steps=1)
+    push_towards_robot(dep)
+    rig.run(monkeypatch, dep)
+    assert n_cams >= 2 and events(rig, "frame_discarded") == [] and len(events(rig, "outcome")) == 1
 
 
 def test_arm_away_from_home_means_no_capture(rig, monkeypatch):

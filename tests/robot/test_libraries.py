@@ -83,6 +83,24 @@ def test_fr3_reflex_and_connection_loss_classified(monkeypatch, cell, plan, faul
         assert result.errors == ("cartesian_reflex",)
 
 
+def test_fr3_planner_failure_is_replanned_once_in_free_space_never_in_contact(monkeypatch, cell, plan):
+    """franky's ruckig planner failing (a plain RuntimeError, no robot error) is never a traceback: a
+    free-space move is replanned once to the same target; a second failure, or one in contact, ends
+    the move short of its goal and nothing after it is sent."""
+    fr, result = run(monkeypatch, cell, plan, FrankyScript(faults={1: "planner"}))
+    assert result.outcome is Outcome.ok and len(fr.robot.moves) == len(plan.commands) + 1
+    assert fr.robot.moves[0].target.matrix.tolist() == fr.robot.moves[1].target.matrix.tolist()
+
+    fr, result = run(monkeypatch, cell, plan, FrankyScript(faults={1: "planner", 2: "planner"}))
+    assert result.outcome is Outcome.short_of_goal and "motion planner failed" in result.message
+    assert result.failed.label == plan.commands[0].label and len(fr.robot.moves) == 2
+
+    push = next(i for i, c in enumerate(plan.commands) if c.in_contact)
+    fr, result = run(monkeypatch, cell, plan, FrankyScript(faults={push + 1: "planner"}))
+    assert result.outcome is Outcome.short_of_goal and result.failed is plan.commands[push]
+    assert len(fr.robot.moves) == push + 1  # no second push
+
+
 def test_fr3_absent_is_one_line(monkeypatch, cell):
     install(monkeypatch, "franky", fake_franky(cell, FrankyScript(absent=True)))
     with pytest.raises(RobotConnectionError, match="cannot connect to the FR3 at 172.16.0.2"):
