@@ -15,7 +15,6 @@ Examples::
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import platform
@@ -31,7 +30,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from models.algos import ALGOS, AgentConfig, HybridAgent  # noqa: E402
-from models.perf import configure_cpu, native_bf16  # noqa: E402
+from models.perf import configure_cpu, native_bf16, update_autocast  # noqa: E402
 from models.replay import ReplayBuffer, Transition  # noqa: E402
 
 
@@ -88,7 +87,7 @@ def time_updates(agent: HybridAgent, buf: ReplayBuffer, batch_size: int, seconds
     minimum: other work on a shared machine only ever slows a window down) and the median window is
     recorded beside it. Returns ``(best, median, sample_ms)``.
     """
-    ctx = torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
+    ctx = update_autocast("bf16" if bf16 else "fp32")  # the trainer's own context
     batches = [buf.sample(batch_size) for _ in range(16)]
     rates = []
     with ctx:

@@ -115,6 +115,10 @@ class TrainConfig:
     threads: Count = 1
     """torch intra-op threads per worker (a second thread in one process gains ~1.26×, a second
     worker ~1.9×: bench/trainer.py)."""
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
+    """Arithmetic of the gradient updates (``models.perf.resolve_precision``): "auto" is bf16 autocast
+    on CPUs with native bf16 (AMX / AVX-512-bf16) and fp32 elsewhere. A speed setting: it may differ
+    on resume."""
     agent: dict[str, Any] = dataclasses.field(default_factory=dict)
     """Extra learner options passed to ``models.AgentConfig`` (e.g. {"actor_hidden": 128}; see AgentConfig)."""
 

@@ -43,7 +43,7 @@ from models.checkpoint import (
     save_checkpoint,
 )
 from models.distributed import GroupSpec, WorkerGroup, make_group
-from models.perf import configure_cpu
+from models.perf import configure_cpu, resolve_precision, update_autocast
 from models.replay import ReplayBuffer, Transition
 from sim.atomic import atomic_write_text
 from sim.contract import SUCCESS_THRESHOLD_M, pose_matrix
@@ -126,6 +126,7 @@ class Trainer:
         fresh_replay: bool = False,
     ):
         self.cpu = configure_cpu(cfg.threads)
+        self.precision = self.cpu["precision"] = resolve_precision(cfg.precision)
         self.run_dir = Path(run_dir)
         self.rank, self.world = rank, cfg.workers
         ckpt = read_run_checkpoint(self.checkpoint_path) if resume and self.checkpoint_path.exists() else None
@@ -476,7 +477,8 @@ class Trainer:
                         update_debt += cfg.updates_per_step * cfg.n_envs
                         while update_debt >= 1.0:
                             sampled = self.buffer.sample(batch_size, cfg.relabel_future)
-                            last_metrics = self.agent.update(sampled)
+                            with update_autocast(self.precision):
+                                last_metrics = self.agent.update(sampled)
                             self.updates += 1
                             update_debt -= 1.0
                     # 4. log, evaluate (worker 0), checkpoint (every worker)
@@ -537,6 +539,7 @@ class Trainer:
             "wall_s": wall_s,
             "updates_per_s": ups,
             "workers": self.world,
+            "precision": self.precision,
             # peak resident memory of this process so far (Linux reports KiB)
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "replay_bytes_per_transition": self.buffer.bytes_per_transition,

@@ -74,6 +74,13 @@ class TwinQ(nn.Module):
     def _heads(self, x: torch.Tensor, n: int) -> torch.Tensor:
         """``x (R, D+3)`` → Q ``(n, R)`` for the first ``n`` heads."""
         h = self._hidden(x, n)
+        if h.dtype != torch.float32:
+            # Under bf16 autocast (the trainer's precision = "bf16") the output layer stays fp32: a
+            # bf16 Q near -0.1 m would be rounded to 0.5 mm steps, the size of the differences
+            # between points the location policy ranks and of a late TD error. It is H MACs per row.
+            with torch.autocast("cpu", enabled=False):
+                q = torch.baddbmm(self.b3[:n], h.float(), self.w3[:n].transpose(1, 2))
+            return q.squeeze(-1)  # (n, R)
         return torch.baddbmm(self.b3[:n], h, self.w3[:n].transpose(1, 2)).squeeze(-1)  # (n, R)
 
     def forward(self, f: torch.Tensor, a: torch.Tensor) -> torch.Tensor:

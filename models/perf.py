@@ -11,6 +11,7 @@ same effect; this needs no extra package.) The memory cost is the learner's own 
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import sys
@@ -52,6 +53,30 @@ def native_bf16() -> str | None:
     except OSError:
         return None
     return next((isa for isa in ("amx_bf16", "avx512_bf16") if isa in flags), None)
+
+
+PRECISIONS = ("auto", "fp32", "bf16")
+
+
+def resolve_precision(precision: str) -> str:
+    """``"auto" | "fp32" | "bf16"`` → the precision gradient updates run in: "auto" is bf16 autocast
+    where the CPU has native bf16 (:func:`native_bf16`) and fp32 elsewhere, where autocast would
+    emulate bf16 and run ~10× slower."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"`precision` must be one of {list(PRECISIONS)}. Got {precision!r}.")
+    if precision == "auto":
+        return "bf16" if native_bf16() else "fp32"
+    return precision
+
+
+def update_autocast(precision: str) -> contextlib.AbstractContextManager:
+    """The context a gradient update runs in for a resolved ``precision``: bf16 autocast runs the
+    matmuls (``addmm``, ``baddbmm``) on bf16 inputs with fp32 accumulation; parameters, optimiser
+    state, losses and softmaxes stay fp32 (torch's CPU autocast policy). Acting and export are
+    always fp32."""
+    if precision == "bf16":
+        return torch.autocast("cpu", dtype=torch.bfloat16)
+    return contextlib.nullcontext()
 
 
 def configure_cpu(threads: int = 2) -> dict[str, object]:
