@@ -269,8 +269,7 @@ def test_act_and_update_with_normals():
 def test_bf16_updates_run_in_bf16_and_track_fp32():
     # The trainer's `precision = "bf16"` context: the matmuls run on bf16 inputs (the first update's
     # figures differ from fp32 in their low bits, so autocast took effect) while parameters and
-    # optimiser state stay fp32 and the figures stay within bf16's rounding of the fp32 ones. (On
-    # the full-size agent the critic and actor gradients agree to a cosine of 0.9997 / 0.9988.)
+    # optimiser state stay fp32 and the figures stay within bf16's rounding of the fp32 ones.
     from models.perf import PRECISIONS, native_bf16, resolve_precision, update_autocast
 
     assert resolve_precision("auto") == ("bf16" if native_bf16() else "fp32")
