@@ -87,7 +87,11 @@ class Perception:
     max_background_mismatch: float = 0.10  # fraction of bin pixels off the background: camera moved
     background_frames: int = 10  # frames averaged (nanmedian) by capture-background
     registration_max_rmse: float = 0.004  # m, RMS of inlier correspondences after ICP
-    registration_min_inliers: float = 0.8  # fraction of object points with a goal point within 1 cm
+    # fraction of the object points the goal would show (registration.goal_visible) with a goal point
+    # within 1 cm
+    registration_min_inliers: float = 0.8
+    # fraction of the object points the goal would show at all: under it, too little to check a fit
+    registration_min_overlap: float = 0.3
     # success is claimed only this far inside the 3 cm threshold (registration's distance error)
     success_margin: float = 0.005
     max_frame_age: float = 1.0  # s, a frame older than this (or than the last motion) is stale
@@ -397,6 +401,7 @@ def parse_cell(data: dict, source: str = "<dict>") -> Cell:
         "background_frames",
         "registration_max_rmse_m",
         "registration_min_inliers",
+        "registration_min_overlap",
         "success_margin_m",
         "max_frame_age_s",
         "warmup_frames",
@@ -407,6 +412,7 @@ def parse_cell(data: dict, source: str = "<dict>") -> Cell:
         background_frames=per.integer("background_frames", 10, low=1),
         registration_max_rmse=per.number("registration_max_rmse_m", 0.004, low=0, high=0.05, strict_low=True),
         registration_min_inliers=per.number("registration_min_inliers", 0.8, low=0, high=1),
+        registration_min_overlap=per.number("registration_min_overlap", 0.3, low=0, high=1),
         success_margin=per.number("success_margin_m", 0.005, low=0, high=0.02),
         max_frame_age=per.number("max_frame_age_s", 1.0, low=0, strict_low=True),
         warmup_frames=per.integer("warmup_frames", 5, low=0),

@@ -8,7 +8,7 @@ warm-up decision. Per step::
 
     frames  = cameras, fresh (newer than the last motion), arm at home        CameraError
     seg     = perception.segment(frames, background)                          PerceptionError
-    reg     = registration.register(seg.obj_points, goal.points)              RegistrationError
+    reg     = registration.register_checked(seg.obj_points, goal.points, ...) RegistrationError
     success = reg.distance < 3 cm − margin, the views agree                    (episode ends)
               (else "ambiguous", never a success: Registration.verdict)
     obs     = build_observation(..., T_goal = reg.T)  ->  gate.check_observation
@@ -57,7 +57,7 @@ from robot.executor import Outcome
 from robot.onnx_policy import OnnxPolicy
 from robot.perception import Background, Segmented, capture_background, observation, segment
 from robot.recovery import handle_failure
-from robot.registration import Goal, Registration, check_registration, goal_from_offset, register
+from robot.registration import Goal, Registration, check_registration, goal_from_offset, register_checked
 from robot.report import EpisodeResult, SessionResult, StepRecord
 from robot.safety import RecoveryBudget, SafetyGate, check_realtime
 from robot.session_log import SessionLog
@@ -369,7 +369,16 @@ class Deployment:
                     goal.save(self.log.folder / "goals" / f"e{ep:03d}.npz")
                     self.log.event("goal_from_offset", episode=ep, offset=list(cfg.goal_offset))
                 if cfg.perception != "true":
-                    reg = register(seg.obj_points, goal.points, self.goal_mode, seed=cfg.seed + step)
+                    reg, widened = register_checked(
+                        seg.obj_points,
+                        goal.points,
+                        self.goal_mode,
+                        cfg.seed + step,
+                        self.cell.cameras,
+                        self.cell.perception,
+                    )
+                    if widened:  # the fast search failed the checks: looked again, wider
+                        self.log.event("registration_widened", episode=ep, step=step)
                 rec = StepRecord(
                     ep,
                     step,
@@ -396,6 +405,7 @@ class Deployment:
                     reg,
                     self.cell.perception.registration_max_rmse,
                     self.cell.perception.registration_min_inliers,
+                    self.cell.perception.registration_min_overlap,
                 )
                 last_distance = reg.distance
                 # "ambiguous": the nearest fit is within 3 cm, an equally good one is not, and the goal

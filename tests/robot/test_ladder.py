@@ -75,13 +75,13 @@ def test_an_ambiguous_registration_ends_the_episode_and_is_not_a_success(tiny_mo
     from robot import loop
     from robot.report import summary_lines
 
-    real_register = loop.register
+    real_register = loop.register_checked
 
-    def ambiguous(source, target, mode="6d", seed=0):
-        reg = real_register(source, target, mode, seed)
-        return Registration(reg.T, reg.rmse, reg.inlier_fraction, 0.01, reg.seconds, (0.06,), 0.5)
+    def ambiguous(*args):
+        reg, widened = real_register(*args)
+        return Registration(reg.T, reg.rmse, reg.inlier_fraction, 0.01, reg.seconds, (0.06,), 0.5), widened
 
-    monkeypatch.setattr(loop, "register", ambiguous)
+    monkeypatch.setattr(loop, "register_checked", ambiguous)
     dep = Deployment.prepare(DeployConfig(robot="sim", model=tiny_model, episodes=1, log_dir=tmp_path / "s"))
     res = dep.run()
     (ep,) = res.episodes

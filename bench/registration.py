@@ -1,0 +1,243 @@
+"""Registration on the twin's cameras: how often it refuses, and how far off it is, per goal kind.
+
+Deploy estimates the goal flow by registering the current object cloud to the goal cloud
+(``robot.registration``). This bench measures that step alone, with the twin's truth and without a
+policy or an arm: per episode (``hydo eval --seed``'s episodes: same object, start and goal), the
+object is placed at its goal pose, captured through the cell's cameras and segmented (the goal
+cloud, as ``hydo deploy capture-goal`` records it), then captured at two more poses:
+
+- ``start``: the episode's start pose. On 6D goals about half need a flip, so the two views often
+  show different faces: the case that makes view-to-view registration hard;
+- ``near``: the goal pose moved by 1–4 cm and turned up to 20° about the vertical: where the loop
+  decides success, so the registration's distance must agree with the true one about 3 cm.
+
+For each: refused or not (the cell's ``registration_max_rmse`` / ``registration_min_inliers`` /
+``registration_min_overlap``), the inlier fraction and the overlap the registration implies, ADD-S
+of the estimated transform against the true one, and (``near``) whether the 3 cm verdict agrees
+with the truth. Printed as a table, per ``move`` / ``flip`` (goal tilt ≥ 30°) and per object.
+
+Usage::
+
+    python bench/registration.py --goals 6d --episodes 100 --seed 5 --json runs/bench-registration.json
+
+JSON: ``{"start": {...}, "near": {...}, "per_object": {...}, "episodes": [...], "meta": {...}}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+from scipy.spatial import cKDTree  # noqa: E402
+
+from hydo_cli.report import FLIP_TILT_DEG  # noqa: E402
+from robot.cell import load_cell  # noqa: E402
+from robot.connect import open_cameras  # noqa: E402
+from robot.errors import RegistrationError  # noqa: E402
+from robot.perception import capture_background, segment  # noqa: E402
+from robot.registration import INLIER_M, check_registration, goal_visible, register_checked  # noqa: E402
+from robot.twin import TwinWorld, sample_episode  # noqa: E402
+from robot.twin_metrics import nearest_true_goal, registration_error, true_distance  # noqa: E402
+from sim.atomic import atomic_write_text  # noqa: E402
+from sim.contract import transform_points  # noqa: E402
+from sim.goals import episode_seed  # noqa: E402
+from sim.objects import load_objects  # noqa: E402
+
+SUCCESS_M = 0.03
+NEAR_SHIFT_M = (0.01, 0.04)
+NEAR_YAW_DEG = 20.0
+
+
+def _tilt_deg(T_from: np.ndarray, T_to: np.ndarray) -> float:
+    """Degrees between the object's up direction at ``T_from`` and at ``T_to`` (up to nothing)."""
+    R_rel = T_to[:3, :3] @ T_from[:3, :3].T
+    return float(np.degrees(np.arccos(np.clip(R_rel[2, 2], -1.0, 1.0))))
+
+
+def _quat_yaw(quat_wxyz: np.ndarray, yaw: float) -> np.ndarray:
+    """``quat_wxyz`` turned by ``yaw`` rad about the world vertical."""
+    w, x, y, z = quat_wxyz
+    c, s = np.cos(yaw / 2), np.sin(yaw / 2)  # q_yaw = (c, 0, 0, s); q_yaw * q
+    return np.array([c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w])
+
+
+def measure(cell, world, cams, background, T_goal, goal_points, mode, seed, rng) -> dict:
+    """Register the object's current cloud to ``goal_points``; the residuals and errors vs the truth."""
+    seg = segment(cams.capture(), background, cell, rng)
+    reg, widened = register_checked(seg.obj_points, goal_points, mode, seed, cell.cameras, cell.perception)
+    p = cell.perception
+    try:
+        check_registration(
+            reg, p.registration_max_rmse, p.registration_min_inliers, p.registration_min_overlap
+        )
+        refused = None
+    except RegistrationError as e:
+        refused = str(e)
+    true_d = true_distance(world, T_goal)
+    # the earlier test (before registration.goal_visible): inliers over all current points
+    d, _ = cKDTree(goal_points).query(transform_points(reg.T, seg.obj_points))
+    inliers_all = float((d < INLIER_M).mean())
+    # the same test with the true transform: what the clouds allow, whatever the fit
+    moved = transform_points(
+        nearest_true_goal(world, T_goal) @ np.linalg.inv(world.object_T()), seg.obj_points
+    )
+    d, _ = cKDTree(goal_points).query(moved)
+    seen = goal_visible(moved, goal_points, cell.cameras)
+    inliers_true = float((d[seen] < INLIER_M).mean())
+    return {
+        "refused": refused,
+        "widened": widened,
+        "refused_all_points_rule": bool(
+            reg.rmse > p.registration_max_rmse or inliers_all < p.registration_min_inliers
+        ),
+        "inliers_all_points": inliers_all,
+        "inliers_true_T": inliers_true,
+        "inlier_fraction": reg.inlier_fraction,
+        "overlap": reg.overlap,
+        "rmse_m": reg.rmse,
+        "adds_m": registration_error(world, reg.T, T_goal),
+        "distance_m": reg.distance,
+        "true_distance_m": true_d,
+        "verdict_agrees": (reg.distance < SUCCESS_M) == (true_d < SUCCESS_M),
+        "seconds": reg.seconds,
+    }
+
+
+def summarise(rows: list[dict]) -> dict:
+    if not rows:
+        return {}
+    err = np.array([r["adds_m"] for r in rows])
+    ok = [r for r in rows if r["refused"] is None]
+    return {
+        "n": len(rows),
+        "refused": sum(r["refused"] is not None for r in rows),
+        "widened": sum(r["widened"] for r in rows),
+        "refused_all_points_rule": sum(r["refused_all_points_rule"] for r in rows),
+        "inliers_all_points_median": float(np.median([r["inliers_all_points"] for r in rows])),
+        "inliers_median": float(np.median([r["inlier_fraction"] for r in rows])),
+        "overlap_median": float(np.median([r["overlap"] for r in rows])),
+        "adds_median_mm": float(np.median(err) * 1000),
+        "adds_p90_mm": float(np.quantile(err, 0.9) * 1000),
+        "adds_over_1cm": int((err > 0.01).sum()),
+        "verdict_agrees": float(np.mean([r["verdict_agrees"] for r in ok])) if ok else None,
+        "distance_error_p90_mm": float(
+            np.quantile([abs(r["distance_m"] - r["true_distance_m"]) for r in rows], 0.9) * 1000
+        ),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--goals", choices=("planar", "6d"), default="6d")
+    ap.add_argument("--episodes", type=int, default=100)
+    ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--objects", default="train", help="object set (as `hydo eval --objects`)")
+    ap.add_argument("--cell", type=Path, default=None, help="cell YAML (default: the twin's example cell)")
+    ap.add_argument("--json", type=Path, help="write results to this JSON file")
+    args = ap.parse_args()
+
+    t_start = time.time()
+    cell = load_cell(args.cell)
+    assets = load_objects(args.objects)
+    world = TwinWorld(cell, seed=args.seed)
+    world.load(assets[0])
+    rng = np.random.default_rng(args.seed)
+    episodes = []
+    with open_cameras(cell, "sim", world=world) as cams:
+        world.reset_arm()
+        world.hide_object()
+        background = capture_background(cams, cell, 3)
+        for ep in range(args.episodes):
+            ep_rng = np.random.default_rng(episode_seed(args.seed, ep))
+            asset, start, goal = sample_episode(world, assets, args.goals, ep_rng)
+            if world.asset is not asset:
+                world.load(asset)
+            world.reset_arm()
+            world.set_object_pose(*goal)
+            world.settle_object()
+            T_goal = world.object_T()
+            goal_points = segment(cams.capture(), background, cell, rng).obj_points
+            world.set_object_pose(*start)
+            world.settle_object()
+            kind = "flip" if _tilt_deg(world.object_T(), T_goal) >= FLIP_TILT_DEG else "move"
+            row = {"episode": ep, "object": asset.name, "kind": kind}
+            row["start"] = measure(cell, world, cams, background, T_goal, goal_points, args.goals, ep, rng)
+            a = rng.uniform(0, 2 * np.pi)
+            shift = rng.uniform(*NEAR_SHIFT_M) * np.array([np.cos(a), np.sin(a)])
+            pos, quat = np.array(goal[0], float), np.array(goal[1], float)
+            pos[:2] += shift
+            world.set_object_pose(pos, _quat_yaw(quat, np.deg2rad(rng.uniform(-NEAR_YAW_DEG, NEAR_YAW_DEG))))
+            world.settle_object()
+            row["near"] = measure(cell, world, cams, background, T_goal, goal_points, args.goals, ep, rng)
+            episodes.append(row)
+    world.close()
+
+    results: dict = {}
+    for case in ("start", "near"):
+        results[case] = {"all": summarise([e[case] for e in episodes])}
+        for kind in ("move", "flip"):
+            results[case][kind] = summarise([e[case] for e in episodes if e["kind"] == kind])
+    per_object: dict = {}
+    for e in episodes:
+        o = per_object.setdefault(e["object"], {"n": 0, "refused": 0, "adds_mm": []})
+        o["n"] += 2
+        o["refused"] += (e["start"]["refused"] is not None) + (e["near"]["refused"] is not None)
+        o["adds_mm"] += [e["start"]["adds_m"] * 1000, e["near"]["adds_m"] * 1000]
+    for o in per_object.values():
+        o["adds_median_mm"] = float(np.median(o.pop("adds_mm")))
+
+    cols = (
+        "n",
+        "refused",
+        "refused_all_points_rule",
+        "inliers_all_points_median",
+        "inliers_median",
+        "overlap_median",
+        "adds_median_mm",
+        "adds_p90_mm",
+        "adds_over_1cm",
+    )
+    print(f"registration on the twin: {args.goals} goals, {args.episodes} episodes, seed {args.seed}")
+    print(f"{'case':<12}" + "".join(f"{c:>16}" for c in (*cols, "verdict_agrees")))
+    for case in ("start", "near"):
+        for kind in ("all", "move", "flip"):
+            s = results[case][kind]
+            if not s:
+                continue
+            vals = [s[c] for c in cols] + [s["verdict_agrees"]]
+            print(
+                f"{case + '/' + kind:<12}"
+                + "".join(f"{v:>16.3f}" if isinstance(v, float) else f"{v!s:>16}" for v in vals)
+            )
+    worst = sorted(per_object.items(), key=lambda kv: -kv[1]["refused"])[:8]
+    print(
+        "most refused objects: " + ", ".join(f"{k} {v['refused']}/{v['n']}" for k, v in worst if v["refused"])
+    )
+    wall = time.time() - t_start
+    print(f"wall {wall:.0f} s")
+    if args.json:
+        meta = {
+            "command": " ".join(sys.argv),
+            "wall_s": wall,
+            "python": platform.python_version(),
+            "machine": platform.processor() or platform.machine(),
+        }
+        atomic_write_text(
+            args.json,
+            json.dumps({**results, "per_object": per_object, "episodes": episodes, "meta": meta}, indent=2),
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,126 @@
+"""Where a policy loses success on rendered depth: which points it sees, or the normals it is given.
+
+``hydo eval --obs render`` gives the policy the deploy path's clouds (three rendered depth cameras,
+background subtraction, PCA normals); training gives it mesh-surface samples with their exact
+normals, every side but the one on the floor. Two things differ, and this bench swaps one at a time
+on the same episodes (``hydo eval --seed``'s):
+
+- ``mesh``: the training observation;
+- ``mesh-seen``: mesh samples, only those within ``SEEN_M`` of a rendered point (the surface the
+  cameras see), exact normals: the rendered *coverage* with the training's geometry;
+- ``render-mesh-normals``: the rendered points, each with the exact normal of the nearest mesh
+  sample: the rendered points with the training's *normals*;
+- ``render``: the deploy path's observation.
+
+``mesh`` → ``mesh-seen`` is what coverage costs; ``render-mesh-normals`` → ``render`` is what PCA
+normals cost. Per variant: success, per move / flip and per object.
+
+Usage::
+
+    python bench/render_gap.py --model models/hydo-cm-6d --goals 6d --episodes 100 --seed 5 \\
+        --variants mesh,mesh-seen,render-mesh-normals,render --json runs/bench-render-gap.json
+
+JSON: ``{variant: {"success_rate", "move", "flip", "per_object", "wall_s"}, "meta": {...}}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from scipy.spatial import cKDTree  # noqa: E402
+
+from hydo_cli.envs import make_envs  # noqa: E402
+from hydo_cli.policies import load_policy  # noqa: E402
+from hydo_cli.report import goal_kind_breakdown  # noqa: E402
+from hydo_cli.rollout import run_episodes, summarize  # noqa: E402
+from sim.atomic import atomic_write_text  # noqa: E402
+from sim.observe import MeshObserver  # noqa: E402
+
+VARIANTS = ("mesh", "mesh-seen", "render-mesh-normals", "render")
+SEEN_M = 0.005  # a mesh sample this close to a rendered point is on the surface the cameras see
+
+
+class HybridObserver:
+    """``segmented_clouds`` of a variant that mixes the rendered and the mesh clouds (see above)."""
+
+    def __init__(self, variant: str, render):
+        self.variant, self.render, self.mesh = variant, render, MeshObserver()
+        self.name = variant
+
+    def segmented_clouds(self, scene):
+        r_p, r_n, r_bg = self.render.segmented_clouds(scene)
+        m_p, m_n, m_bg = self.mesh.segmented_clouds(scene)
+        if self.variant == "mesh-seen":
+            d, _ = cKDTree(r_p).query(m_p)
+            keep = d < SEEN_M
+            if keep.sum() < 8:  # nothing rendered near the samples: as the render observer's fallback
+                return m_p, m_n, m_bg
+            return m_p[keep], m_n[keep], m_bg
+        # render-mesh-normals: each rendered point with the exact normal of the nearest mesh sample
+        _, j = cKDTree(m_p).query(r_p)
+        return r_p, m_n[j], r_bg
+
+    def close(self):
+        self.render.close()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", required=True, help="exported model folder or training run (as hydo eval)")
+    ap.add_argument("--goals", choices=("planar", "6d"), default="6d")
+    ap.add_argument("--objects", default="train")
+    ap.add_argument("--episodes", type=int, default=100)
+    ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    if bad := [v for v in variants if v not in VARIANTS]:
+        ap.error(f"unknown variants {bad}; choose from {list(VARIANTS)}")
+
+    results: dict = {}
+    lp = load_policy(args.model, seed=args.seed)
+    for v in variants:
+        (env,) = make_envs(
+            args.objects, args.goals, 0, "mesh" if v == "mesh" else "render", 1, lp.n_obj, lp.n_bg
+        )
+        if v not in ("mesh", "render"):
+            env.observer = HybridObserver(v, env.observer)
+        t0 = time.perf_counter()
+        eps = run_episodes([env], lp.policy, args.episodes, seed=args.seed)
+        env.close()
+        per_object: dict = {}
+        for e in eps:
+            o = per_object.setdefault(e.object, [0, 0])
+            o[0] += e.success
+            o[1] += 1
+        results[v] = {
+            **summarize(eps),
+            **goal_kind_breakdown(eps),
+            "per_object": per_object,
+            "wall_s": time.perf_counter() - t0,
+            "successes": [bool(e.success) for e in eps],
+        }
+        r = results[v]
+        mf = "  ".join(
+            f"{k} {r[k]['success_rate']:.0%} of {r[k]['episodes']}" for k in ("move", "flip") if k in r
+        )
+        print(f"{v:<22} success {r['success_rate']:.0%}   {mf}   ({r['wall_s']:.0f} s)", flush=True)
+    if args.json:
+        meta = {"command": " ".join(sys.argv), "python": platform.python_version()}
+        atomic_write_text(args.json, json.dumps({**results, "meta": meta}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
