@@ -22,6 +22,25 @@ CASES = {
     "inference.py": (["--runs", "3"], lambda d: d["ort_ms_median"] > 0),
     "lookahead.py": (["--candidates", "4", "--episodes", "1"], lambda d: "C=4" in d),
     "sim.py": (["--seconds", "1"], lambda d: d["mesh_steps_per_s"] > 0),
+    "registration.py": (
+        ["--episodes", "2"],
+        lambda d: d["start"]["all"]["n"] == 2 and d["near"]["all"]["adds_median_mm"] < 10,
+    ),
+    "render_gap.py": (
+        [
+            "--model",
+            str(ROOT / "models" / "hydo-cm-6d"),
+            "--episodes",
+            "1",
+            "--variants",
+            "mesh,render-mesh-normals",
+        ],
+        lambda d: set(d) == {"mesh", "render-mesh-normals", "meta"} and len(d["mesh"]["successes"]) == 1,
+    ),
+    "push_forces.py": (
+        ["--model", str(ROOT / "models" / "hydo-cm-6d"), "--episodes", "2"],
+        lambda d: sum(v["primitives"] for k, v in d.items() if k != "meta") > 0,
+    ),
     "trainer.py": (
         ["--seconds", "15", "--goals", "planar", "--objects", "cube", "--log-every", "8"]
         + [
