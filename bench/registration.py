@@ -95,6 +95,7 @@ def measure(cell, world, cams, background, T_goal, goal_points, mode, seed, rng)
     d, _ = cKDTree(goal_points).query(moved)
     seen = goal_visible(moved, goal_points, cell.cameras)
     inliers_true = float((d[seen] < INLIER_M).mean())
+    inliers_true_all = float((d < INLIER_M).mean())
     return {
         "refused": refused,
         "widened": widened,
@@ -103,6 +104,7 @@ def measure(cell, world, cams, background, T_goal, goal_points, mode, seed, rng)
         ),
         "inliers_all_points": inliers_all,
         "inliers_true_T": inliers_true,
+        "inliers_true_T_all_points": inliers_true_all,
         "inlier_fraction": reg.inlier_fraction,
         "overlap": reg.overlap,
         "rmse_m": reg.rmse,
@@ -125,6 +127,11 @@ def summarise(rows: list[dict]) -> dict:
         "widened": sum(r["widened"] for r in rows),
         "refused_all_points_rule": sum(r["refused_all_points_rule"] for r in rows),
         "inliers_all_points_median": float(np.median([r["inliers_all_points"] for r in rows])),
+        # with the true transform: what the clouds allow, over the points the goal shows / all points
+        "true_T_inliers_median": float(np.median([r["inliers_true_T"] for r in rows])),
+        "true_T_inliers_min": float(np.min([r["inliers_true_T"] for r in rows])),
+        "true_T_inliers_all_points_median": float(np.median([r["inliers_true_T_all_points"] for r in rows])),
+        "true_T_inliers_all_points_min": float(np.min([r["inliers_true_T_all_points"] for r in rows])),
         "inliers_median": float(np.median([r["inlier_fraction"] for r in rows])),
         "overlap_median": float(np.median([r["overlap"] for r in rows])),
         "adds_median_mm": float(np.median(err) * 1000),
@@ -225,6 +232,14 @@ def main() -> None:
         "most refused objects: " + ", ".join(f"{k} {v['refused']}/{v['n']}" for k, v in worst if v["refused"])
     )
     wall = time.time() - t_start
+    for kind in ("move", "flip"):
+        t = results["start"][kind]
+        if t:
+            print(
+                f"start/{kind}, true transform: inliers over the points the goal shows median "
+                f"{t['true_T_inliers_median']:.3f} min {t['true_T_inliers_min']:.3f}; over all current points "
+                f"median {t['true_T_inliers_all_points_median']:.3f} min {t['true_T_inliers_all_points_min']:.3f}"
+            )
     print(f"wall {wall:.0f} s")
     if args.json:
         meta = {

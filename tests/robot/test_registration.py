@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from robot.cell import load_cell
 from robot.connect import open_cameras
+from robot.errors import RegistrationError
 from robot.perception import capture_background, segment
 from robot.registration import (
     INLIER_M,
@@ -118,6 +119,6 @@ def test_too_little_shared_surface_is_refused_in_one_line(twin):
     assert reg.overlap < 0.95
     p = cell.perception
     with pytest.raises(
-        Exception, match=r"only \d+% of the object's visible points would be visible at the goal"
+        RegistrationError, match=r"only \d+% of the object's visible points would be visible at the goal"
     ):
         check_registration(reg, p.registration_max_rmse, p.registration_min_inliers, min_overlap=0.95)
