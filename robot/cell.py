@@ -31,7 +31,7 @@ import numpy as np
 from pydantic import TypeAdapter, ValidationError
 
 from robot.errors import CellError, GoalError
-from sim.primitive import FLOOR_CLEARANCE_M, PUSH_STEP_M, Workspace
+from sim.primitive import FLOOR_CLEARANCE_M, FORCE_STOP_N, PUSH_STEP_M, Workspace
 from sim.schema import STRICT, one_line
 
 CELL_VERSION = 1
@@ -71,7 +71,7 @@ class Limits:
     push_speed: float = 0.05  # m/s, fingertip speed from pre-contact through the pushes
     cartesian_stiffness: float = 500.0  # N/m, translational impedance of the arm's controller
     rotational_stiffness: float = 30.0  # N·m/rad
-    force_stop: float = 30.0  # N, contact-force stop: a push is stopped when |F_ext| exceeds it
+    force_stop: float = FORCE_STOP_N  # N, contact-force stop: a push is stopped when |F_ext| exceeds it
     collision_force: float = 40.0  # N, the robot's Cartesian collision reflex threshold
     collision_torque: float = 30.0  # N·m, the robot's joint collision reflex threshold
     motion_timeout: float = 20.0  # s, deadline on every single move

@@ -46,12 +46,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.ndimage import minimum_filter
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from robot.errors import RegistrationError
 from sim.contract import transform_points
+from sim.depth import seen_from_cameras
 
 INLIER_M = 0.01  # a correspondence closer than this is an inlier
 TRIM = 0.8  # ICP fits the closest 80% of correspondences
@@ -68,11 +68,6 @@ AMBIGUOUS_SLACK_M = 0.0005
 AMBIGUOUS_DISTINCT_M = 0.015
 COVERAGE_MIN = 0.92  # of the goal cloud within INLIER_M of the registered current cloud: the views agree
 COVERAGE_POINTS = 500
-# goal_visible: the goal cloud's depth per VISIBILITY_BLOCK_PX × VISIBILITY_BLOCK_PX pixel block, the
-# nearest over a 3 × 3 block neighbourhood (fills the gaps of a thinned cloud); a moved point more than
-# VISIBILITY_DEPTH_M behind that surface is hidden by the object itself in that camera
-VISIBILITY_BLOCK_PX = 1
-VISIBILITY_DEPTH_M = 0.01
 GOAL_FORMAT = "hydo-goal/1"
 GOAL_KINDS = ("captured", "offset")  # Goal.kind: the object placed at the goal | the start cloud moved
 
@@ -276,37 +271,14 @@ def register(
 
 def goal_visible(points: np.ndarray, goal: np.ndarray, cameras: Sequence) -> np.ndarray:
     """Which of ``points (M, 3)`` (the current cloud moved to the goal by the registration, base frame)
-    the goal's ``cameras`` would see: (M,) bool.
+    the goal's ``cameras`` (``robot.cell`` camera specs) would see: (M,) bool.
 
-    Per camera, the goal cloud ``goal (G, 3)`` is projected into a depth image of pixel blocks (the
-    nearest point per block, then the nearest over each block's 3 × 3 neighbourhood, which closes the
-    gaps of a thinned cloud). A point in the image is seen unless it lies more than
-    ``VISIBILITY_DEPTH_M`` behind the goal's surface there: the object's own far side or underside.
+    ``sim.depth.seen_from_cameras`` with the goal cloud ``goal (G, 3)`` as the surface in front: a
+    moved point more than ``VISIBILITY_DEPTH_M`` behind it is the object's own far side or underside.
     A point where the goal shows nothing (outside its silhouette) counts as seen: a fit that puts
     points there is wrong, and they count against it as outliers."""
-    seen = np.zeros(len(points), bool)
-    b = VISIBILITY_BLOCK_PX
-    for cam in cameras:
-        T = np.linalg.inv(cam.T_base_camera)
-        shape = (-(-cam.height // b), -(-cam.width // b))
-
-        def blocks(p: np.ndarray, T=T, cam=cam):
-            pc = p @ T[:3, :3].T + T[:3, 3]
-            z = pc[:, 2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = cam.K[0, 0] * pc[:, 0] / z + cam.K[0, 2]
-                v = cam.K[1, 1] * pc[:, 1] / z + cam.K[1, 2]
-            ok = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-            return (v[ok] // b).astype(int), (u[ok] // b).astype(int), z[ok], ok
-
-        gv, gu, gz, _ = blocks(goal)
-        depth = np.full(shape, np.inf)
-        np.minimum.at(depth, (gv, gu), gz)
-        depth = minimum_filter(depth, size=3, mode="nearest")
-        pv, pu, pz, ok = blocks(points)
-        front = depth[pv, pu]
-        seen[np.flatnonzero(ok)[~np.isfinite(front) | (pz <= front + VISIBILITY_DEPTH_M)]] = True
-    return seen
+    views = [(cam.K, cam.T_base_camera, (cam.height, cam.width)) for cam in cameras]
+    return seen_from_cameras(points, goal, views)
 
 
 def _distinct_starts(Rs: np.ndarray, score: np.ndarray, n: int = REFINE_CANDIDATES) -> list[int]:

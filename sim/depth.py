@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy.ndimage import minimum_filter
 from scipy.spatial import cKDTree
 
 from sim.primitive import BIN_FLOOR_Z, BIN_INNER_SIZE_M
@@ -26,6 +27,11 @@ NORMAL_K = 16  # neighbours for PCA normals
 BG_STRIDE = 4  # background pixels are taken on this pixel grid (every 4th row and column)
 MAX_OBJECT_POINTS = 2048  # fused object points beyond this are randomly thinned (normals cost ~linear)
 BIN_CROP_MARGIN_M = 0.01
+# seen_from_cameras: a point more than VISIBILITY_DEPTH_M behind the surface a camera sees at its
+# pixel (the nearest point per VISIBILITY_BLOCK_PX block, then the nearest over a 3 × 3 neighbourhood
+# of blocks, which closes the gaps of a sparse cloud) is hidden in that camera
+VISIBILITY_BLOCK_PX = 1
+VISIBILITY_DEPTH_M = 0.01
 #: Background points are kept inside this box (world frame, metres): the bin's inner volume + 1 cm
 #: sideways, from 1 cm below the floor to 0.3 m above it.
 BIN_CROP_LOW = np.array([*(-BIN_INNER_SIZE_M[:2] / 2 - BIN_CROP_MARGIN_M), BIN_FLOOR_Z - BIN_CROP_MARGIN_M])
@@ -266,3 +272,64 @@ def clouds_from_depth(
         keep = np.sort(rng.choice(len(obj_p), max_object_points, replace=False))
         obj_p, views = obj_p[keep], views[keep]
     return obj_p, estimate_normals(obj_p, NORMAL_K, views), bg_p, masks
+
+
+def seen_from_cameras(
+    points: np.ndarray,
+    surface: np.ndarray | None,
+    cameras,
+    block_px: int = VISIBILITY_BLOCK_PX,
+    depth_m: float = VISIBILITY_DEPTH_M,
+) -> np.ndarray:
+    """Which of ``points (M, 3)`` some camera sees when ``surface (S, 3)`` is what is in front of it:
+    (M,) bool. The z-buffer test of the training observation (``sim.observe.MeshObserver``: the
+    object's own samples hide its far side; ``surface=None``: the points are their own surface) and
+    of registration (``robot.registration.goal_visible``: the goal cloud hides the moved points
+    behind it), one home so that the two agree.
+
+    ``cameras``: ``(K (3, 3), T_world_cam (4, 4) optical frame, (height, width) px)`` per camera, in
+    the frame of the points. Per camera, ``surface`` becomes a depth image of ``block_px`` pixel
+    blocks; a point inside the image is seen unless it lies more than ``depth_m`` behind that image's
+    surface. A point where ``surface`` shows nothing counts as seen; a point outside every image or
+    behind every camera is not."""
+    cameras = list(cameras)
+    points = np.asarray(points, dtype=np.float64)
+    seen = np.zeros(len(points), bool)
+    if not cameras or not len(points):
+        return seen
+    b = int(block_px)
+    # camera-frame coordinates of every point in every camera at once: (C, 3, 4) world -> camera
+    T_cam = np.linalg.inv(np.stack([c[1] for c in cameras]))[:, :3, :]
+
+    def blocks(p: np.ndarray):
+        """Per camera: block row, block column, depth (m) of the points in its image, and which those are."""
+        pc = (p @ T_cam[:, :, :3].reshape(-1, 3).T + T_cam[:, :, 3].ravel()).T  # (3C, N): x, y, z per camera
+        out = []
+        for c, (K, _, (height, width)) in enumerate(cameras):
+            x, y, z = pc[3 * c], pc[3 * c + 1], pc[3 * c + 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = K[0, 0] * x / z + K[0, 2]
+                v = K[1, 1] * y / z + K[1, 2]
+            ok = (z > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+            out.append(
+                ((v[ok] / b).astype(np.intp), (u[ok] / b).astype(np.intp), z[ok], ok)
+            )  # u, v >= 0: truncation floors
+        return out
+
+    point_blocks = blocks(points)
+    surface_blocks = point_blocks if surface is None else blocks(np.asarray(surface, dtype=np.float64))
+    for (pv, pu, pz, ok), (sv, su, sz, _) in zip(point_blocks, surface_blocks, strict=True):
+        if len(pv) == 0:
+            continue
+        if len(sv) == 0:
+            seen[ok] = True
+            continue
+        # the depth image only over the blocks the points and the surface fall in (+1 for the filter)
+        v0, u0 = min(sv.min(), pv.min()) - 1, min(su.min(), pu.min()) - 1
+        v1, u1 = max(sv.max(), pv.max()) + 2, max(su.max(), pu.max()) + 2
+        depth = np.full((v1 - v0, u1 - u0), np.inf)
+        np.minimum.at(depth, (sv - v0, su - u0), sz)
+        depth = minimum_filter(depth, size=3, mode="nearest")
+        front = depth[pv - v0, pu - u0]
+        seen[np.flatnonzero(ok)[~np.isfinite(front) | (pz <= front + depth_m)]] = True
+    return seen

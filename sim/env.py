@@ -276,7 +276,7 @@ class BinEnv(gym.Env):
         normal = self._obs["normals"][index]
         pose_before = np.concatenate(self.scene.object_pose())
         waypoints = primitive_waypoints(point, normal, motion)
-        rejected, reason, steps = False, "", 0
+        rejected, reason, steps, force_stopped = False, "", 0, False
         try:
             check_plan(waypoints, SIM_WORKSPACE)
         except PrimitiveRejected as e:
@@ -284,6 +284,7 @@ class BinEnv(gym.Env):
         if not rejected:
             result = self.scene.execute_primitive(waypoints)
             rejected, reason, steps = not result.executed, result.reason, result.physics_steps
+            force_stopped = result.force_stopped
         self._steps += 1
         if self.task is not None:
             self._trajectory.append(
@@ -310,6 +311,7 @@ class BinEnv(gym.Env):
             "failure": "object_left_bin" if left_bin else ("timeout" if truncated else ""),
             "object": self.scene.asset.name,
             "physics_steps": steps,
+            "force_stopped": force_stopped,  # the hand passed the contact-force stop and let go there
             "waypoints": waypoints,
             # poses after the primitive, position (3,) m + quaternion wxyz (4,): hindsight relabelling
             # (models.replay) turns what the object reached into a goal

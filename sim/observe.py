@@ -3,9 +3,11 @@
 Two sources share one interface, ``segmented_clouds(scene) -> (obj_points, obj_normals, bg_points)``,
 and ``sim.contract.build_observation`` turns either into the network's fixed-size observation:
 
-- ``MeshObserver`` (training default, ~0.1 ms): the object's mesh-surface samples transformed by its
-  simulated pose, dropping points the cameras cannot see (facing the floor, or touching it); the
-  background is a fixed grid on the bin's floor and inner walls plus clutter surfaces.
+- ``MeshObserver`` (training default, ~1 ms): the object's mesh-surface samples transformed by its
+  simulated pose, keeping the ones the scene's depth cameras see: not facing the floor, not touching
+  it, and not behind the object's own surface in all three cameras (a z-buffer of the samples, the
+  same test registration runs on goal clouds); the background is a fixed grid on the bin's floor and
+  inner walls plus clutter surfaces.
 - ``RenderObserver`` (``sim.render``): three rendered depth cameras with background subtraction,
   the sim2real-like path also used by deploy's twin.
 """
@@ -14,14 +16,48 @@ from __future__ import annotations
 
 import functools
 
+import mujoco
 import numpy as np
 
 from sim.contract import transform_points
+from sim.depth import pinhole_intrinsics, seen_from_cameras
 from sim.primitive import BIN_FLOOR_Z, BIN_INNER_SIZE_M
 
+#: The scene's depth cameras (sim/assets/scene.xml) and their image size: what the rendered
+#: observation renders and what the mesh observation's z-buffer projects into.
+CAMERAS = ("cam_front", "cam_left", "cam_right")
+DEPTH_HEIGHT, DEPTH_WIDTH = 240, 320  # pixels; at 120x160 too few object pixels remain
+
 HIDDEN_NORMAL_Z = -0.3  # points whose normal points further down than this face the floor: unseen
-FLOOR_CONTACT_M = 0.003  # points this close to the floor are hidden under the object
+FLOOR_CONTACT_M = 0.006  # points this close to the floor are lost: under the object, or in the background
 BG_GRID_M = 0.015  # spacing of the bin's background grid
+MIN_VISIBLE_POINTS = 8  # fewer visible samples than this (e.g. mid-air): keep them all instead
+
+# MuJoCo cameras look along -z with y up; OpenCV's optical frame looks along +z with y down.
+_GL_TO_CV = np.diag([1.0, -1.0, -1.0])
+
+
+def camera_pose_cv(data: mujoco.MjData, cam_id: int) -> np.ndarray:
+    """Pose (4, 4) of camera ``cam_id``'s OpenCV optical frame in the world (after mj_forward)."""
+    T = np.eye(4)
+    T[:3, :3] = data.cam_xmat[cam_id].reshape(3, 3) @ _GL_TO_CV
+    T[:3, 3] = data.cam_xpos[cam_id]
+    return T
+
+
+def scene_cameras(model: mujoco.MjModel, cameras=CAMERAS, height=DEPTH_HEIGHT, width=DEPTH_WIDTH) -> list:
+    """``[(K (3, 3), T_world_cam (4, 4), (height, width))]`` of the scene's depth cameras, the form
+    ``sim.depth.seen_from_cameras`` takes. They look at the static bin, so any state gives the same
+    poses: a scratch ``MjData`` at the model's defaults is forwarded once."""
+    d = mujoco.MjData(model)
+    mujoco.mj_forward(model, d)
+    out = []
+    for name in cameras:
+        i = model.camera(name).id
+        out.append(
+            (pinhole_intrinsics(model.cam_fovy[i], width, height), camera_pose_cv(d, i), (height, width))
+        )
+    return out
 
 
 @functools.cache
@@ -43,6 +79,14 @@ def bin_background_points() -> np.ndarray:
     return np.concatenate([floor, *walls]).astype(np.float32)
 
 
+def visible_mask(normals_obj: np.ndarray, T: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+    """(S,) bool: the samples not facing the floor and not touching it (``HIDDEN_NORMAL_Z``,
+    ``FLOOR_CONTACT_M``), given their object-frame normals (S, 3), the pose ``T`` and the samples
+    at that pose (S, 3)."""
+    n_z = normals_obj @ T[2, :3]  # the world z of each normal
+    return (n_z > HIDDEN_NORMAL_Z) & (points_world[:, 2] > BIN_FLOOR_Z + FLOOR_CONTACT_M)
+
+
 def visible_surface(
     points_obj: np.ndarray, normals_obj: np.ndarray, T: np.ndarray, points_world: np.ndarray | None = None
 ):
@@ -50,22 +94,42 @@ def visible_surface(
     ``points_world``: the samples at ``T`` (``transform_points(T, points_obj)``) if the caller has them."""
     p = transform_points(T, points_obj) if points_world is None else points_world
     n = normals_obj @ T[:3, :3].T
-    keep = (n[:, 2] > HIDDEN_NORMAL_Z) & (p[:, 2] > BIN_FLOOR_Z + FLOOR_CONTACT_M)
-    if keep.sum() < 8:  # degenerate view (e.g. mid-air): fall back to everything rather than nothing
+    keep = visible_mask(normals_obj, T, p)
+    if keep.sum() < MIN_VISIBLE_POINTS:  # degenerate view (e.g. mid-air): everything rather than nothing
         return p.copy(), n  # a copy, as p[keep] would be (points_world may be a cache)
     return p.compress(keep, axis=0), n.compress(keep, axis=0)  # p[keep], several times faster
 
 
 class MeshObserver:
-    """Segmented clouds from mesh-surface samples and the simulated poses (no rendering)."""
+    """Segmented clouds from mesh-surface samples and the simulated poses (no rendering).
 
-    name = "mesh"
+    ``cameras=True`` (the default) keeps only the samples the scene's depth cameras see (the
+    z-buffer above); ``False`` keeps every sample not facing or touching the floor, which shows the
+    policy surfaces no camera in the cell sees (the observation of models trained before the
+    z-buffer, kept to measure them: ``bench/render_gap.py``)."""
+
+    def __init__(self, cameras: bool = True):
+        self.cameras = bool(cameras)
+        self.name = "mesh" if self.cameras else "mesh-all"
+        self._views: tuple[mujoco.MjModel, list] | None = None  # (model, scene_cameras(model))
+
+    def _scene_views(self, model: mujoco.MjModel) -> list:
+        if self._views is None or self._views[0] is not model:
+            self._views = (model, scene_cameras(model))
+        return self._views[1]
 
     def segmented_clouds(self, scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(obj_points (M, 3), obj_normals (M, 3), bg_points (L, 3))`` world frame, metres."""
-        obj_p, obj_n = visible_surface(
-            scene.asset.surface_points, scene.asset.surface_normals, scene.object_T(), scene.object_surface()
-        )
+        surface, T = scene.object_surface(), scene.object_T()  # (S, 3) every sample at the pose
+        n_obj = scene.asset.surface_normals
+        keep = visible_mask(n_obj, T, surface)
+        if self.cameras:
+            seen = keep & seen_from_cameras(surface, None, self._scene_views(scene.model))
+            if seen.sum() >= MIN_VISIBLE_POINTS:
+                keep = seen
+        if keep.sum() < MIN_VISIBLE_POINTS:  # degenerate view (e.g. mid-air): everything, not nothing
+            keep = np.ones(len(surface), bool)
+        obj_p, obj_n = surface.compress(keep, axis=0), n_obj.compress(keep, axis=0) @ T[:3, :3].T
         bg = [bin_background_points()]
         for i, c in enumerate(scene.clutter):
             bg.append(visible_surface(c.surface_points, c.surface_normals, scene.object_T(f"clutter{i}"))[0])

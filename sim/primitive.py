@@ -32,6 +32,10 @@ RETRACT_HEIGHT_M = 0.06  # straight-up retract after the last push
 FLOOR_CLEARANCE_M = 0.005  # fingertip never commanded lower than this above the bin floor
 N_WAYPOINTS = 3 + N_PUSH_STEPS + 1
 PUSH_SEGMENTS = tuple(range(3, 3 + N_PUSH_STEPS))  # waypoint indices reached by pushing moves
+#: N, the contact-force stop: a primitive stops when the net contact force on the hand exceeds this.
+#: The cell's default ``force_stop_n`` (``robot.cell.Limits``) and the training hand's (``sim.scene``),
+#: so that a policy never learns a push that the arm would stop.
+FORCE_STOP_N = 30.0
 
 
 # Bin of HACMan's scene: inner size 0.45 x 0.54 x 0.107 m, floor top at z = 0, centred at x = y = 0.

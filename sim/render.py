@@ -34,7 +34,7 @@ from sim.depth import (  # noqa: E402
     pinhole_intrinsics,
     subtract_background,
 )
-from sim.observe import visible_surface  # noqa: E402
+from sim.observe import CAMERAS, DEPTH_HEIGHT, DEPTH_WIDTH, camera_pose_cv, visible_surface  # noqa: E402, F401
 
 
 def _use_egl_if_asked() -> None:
@@ -53,8 +53,6 @@ def _use_egl_if_asked() -> None:
 
 _use_egl_if_asked()
 
-CAMERAS = ("cam_front", "cam_left", "cam_right")
-DEPTH_HEIGHT, DEPTH_WIDTH = 240, 320  # pixels; at 120x160 too few object pixels remain
 MIN_OBJECT_POINTS = 8  # fewer rendered object points than this: fall back to mesh samples
 FAR_AWAY_POS = np.array([0.0, 0.0, 20.0])  # where the object goes for the background: above every view
 #: A clutter body whose position (m) or quaternion component changed by more than this since the
@@ -68,18 +66,6 @@ RGB_LOOKAT = (0.0, 0.0, 0.03)  # metres
 RGB_DISTANCE_M = 0.95
 RGB_AZIMUTH_DEG = 150.0
 RGB_ELEVATION_DEG = -42.0
-
-
-# MuJoCo cameras look along -z with y up; OpenCV's optical frame looks along +z with y down.
-_GL_TO_CV = np.diag([1.0, -1.0, -1.0])
-
-
-def camera_pose_cv(data: mujoco.MjData, cam_id: int) -> np.ndarray:
-    """Pose (4, 4) of camera ``cam_id``'s OpenCV optical frame in the world (after mj_forward)."""
-    T = np.eye(4)
-    T[:3, :3] = data.cam_xmat[cam_id].reshape(3, 3) @ _GL_TO_CV
-    T[:3, 3] = data.cam_xpos[cam_id]
-    return T
 
 
 class _RendererPool:

@@ -21,7 +21,7 @@ from mujoco import rollout
 
 from sim.contract import pose_matrix, transform_points
 from sim.objects import ObjectAsset
-from sim.primitive import BIN_INNER_SIZE_M, PUSH_SEGMENTS
+from sim.primitive import BIN_INNER_SIZE_M, FORCE_STOP_N, PUSH_SEGMENTS
 
 ASSETS = Path(__file__).parent / "assets"
 #: The Panda arm and hand (``panda.xml``, ``hand.stl``, ``finger.stl``...), shipped with the package:
@@ -88,6 +88,7 @@ class PrimitiveResult:
     executed: bool
     reason: str = ""  # why it was not executed
     physics_steps: int = 0
+    force_stopped: bool = False  # the contact force passed the stop: the hand let go there
 
 
 def _add_hand_visuals(spec: mujoco.MjSpec) -> None:
@@ -179,8 +180,15 @@ class BinScene:
     Used by the gymnasium env (training, eval), goal generation and the deploy twin's object.
     """
 
-    def __init__(self, asset: ObjectAsset, clutter: tuple[ObjectAsset, ...] = (), obstacles: tuple = ()):
+    def __init__(
+        self,
+        asset: ObjectAsset,
+        clutter: tuple[ObjectAsset, ...] = (),
+        obstacles: tuple = (),
+        force_stop_n: float | None = FORCE_STOP_N,
+    ):
         self.asset = asset
+        self.force_stop_n = force_stop_n  # N; None: the hand pushes up to its actuator limits
         self.clutter = clutter
         self.obstacles = tuple(obstacles)  # static boxes of a task (``sim.tasks.Obstacle``)
         self.model = build_model(asset, clutter, self.obstacles)
@@ -196,6 +204,8 @@ class BinScene:
         hand_body = m.body("hand").id
         self.hand_geoms = np.flatnonzero(m.geom_bodyid == hand_body)
         self._is_hand_geom = m.geom_bodyid == hand_body  # by geom id
+        force = m.sensor("hand_contact_force")
+        self._hand_force = slice(force.adr[0], force.adr[0] + 3)  # in sensordata
         self.free_dofs = np.concatenate(  # the free bodies' dofs: settle waits for them to rest
             [np.arange(m.jnt_dofadr[j], m.jnt_dofadr[j] + 6) for j in np.flatnonzero(m.jnt_type == 0)]
         )
@@ -317,6 +327,9 @@ class BinScene:
         Teleports the hand to the pre-contact waypoint (HACMan does the same in training), moves
         through the rest with force-limited position control, parks the hand and waits for rest. A
         start pose inside the object, clutter or a wall is refused and leaves the state unchanged.
+        With ``force_stop_n`` set, the primitive ends at the first physics step whose net contact
+        force on the hand passes it, as the cell's contact-force stop ends a push on the arm (which
+        then retracts and re-observes): the hand is parked from there.
         """
         m, d = self.model, self.data
         saved = self.get_state()
@@ -329,16 +342,20 @@ class BinScene:
             return PrimitiveResult(False, "start pose in collision")
         # approach, pushes, then lift 6 cm so the hand leaves the object gently; then park
         controls = push_controls(waypoints, m.opt.timestep)
-        self._run_controls(controls)
-        steps = len(controls)
+        stopped_at = self._run_controls(controls, self.force_stop_n)
+        steps = len(controls) if stopped_at is None else stopped_at + 1
         self.reset_hand(forward=False)  # settle steps at once
         steps += self.settle()
-        return PrimitiveResult(True, "", steps)
+        return PrimitiveResult(True, "", steps, stopped_at is not None)
 
-    def _run_controls(self, controls: np.ndarray) -> None:
+    def _run_controls(self, controls: np.ndarray, force_stop_n: float | None = None) -> int | None:
         """``mj_step`` once per row of ``controls (T, nu)``, each row set as ``ctrl`` first; the other
         user inputs (mocap poses, applied forces) stay as they are. One ``mujoco.rollout`` call: the
-        same steps as that Python loop, bit for bit, without its per-step overhead."""
+        same steps as that Python loop, bit for bit, without its per-step overhead.
+
+        With ``force_stop_n``: the index of the first step whose hand contact force (N) passes it,
+        and the state is put back to the one after that step (the rest of the rollout is dropped);
+        None when no step does (the state is the last step's)."""
         m, d = self.model, self.data
         initial = np.empty((1, mujoco.mj_stateSize(m, _PHYSICS_STATE)))
         mujoco.mj_getState(m, d, initial[0], _PHYSICS_STATE)
@@ -362,3 +379,12 @@ class BinScene:
             state=states,
             sensordata=sensordata,
         )
+        if force_stop_n is None:
+            return None
+        f = sensordata[0, :, self._hand_force]
+        over = np.flatnonzero(np.einsum("ij,ij->i", f, f) > force_stop_n**2)
+        if len(over) == 0:
+            return None
+        k = int(over[0])
+        mujoco.mj_setState(m, d, states[0, k], _PHYSICS_STATE)
+        return k
