@@ -2,23 +2,25 @@
 
 ``hydo eval --obs render`` gives the policy the deploy path's clouds (three rendered depth cameras,
 background subtraction, PCA normals); training gives it mesh-surface samples with their exact
-normals, every side but the one on the floor. Two things differ, and this bench swaps one at a time
-on the same episodes (``hydo eval --seed``'s):
+normals, those the cameras see. Two things differ, and this bench swaps one at a time on the same
+episodes (``hydo eval --seed``'s):
 
-- ``mesh``: the training observation;
+- ``mesh-all``: mesh samples on every side not facing or touching the floor, the training
+  observation before it kept only what the cameras see (``MeshObserver(cameras=False)``);
+- ``mesh``: the training observation (the samples the cameras see, by a z-buffer);
 - ``mesh-seen``: mesh samples, only those within ``SEEN_M`` of a rendered point (the surface the
   cameras see), exact normals: the rendered *coverage* with the training's geometry;
 - ``render-mesh-normals``: the rendered points, each with the exact normal of the nearest mesh
   sample: the rendered points with the training's *normals*;
 - ``render``: the deploy path's observation.
 
-``mesh`` → ``mesh-seen`` is what coverage costs; ``render-mesh-normals`` → ``render`` is what PCA
+``mesh`` → ``mesh-seen`` is what the rest of the rendered coverage costs; ``render-mesh-normals`` → ``render`` is what PCA
 normals cost. Per variant: success, per move / flip and per object.
 
 Usage::
 
     python bench/render_gap.py --model models/hydo-cm-6d --goals 6d --episodes 100 --seed 5 \\
-        --variants mesh,mesh-seen,render-mesh-normals,render --json runs/bench-render-gap.json
+        --variants mesh-all,mesh,mesh-seen,render-mesh-normals,render --json runs/bench-render-gap.json
 
 JSON: ``{variant: {"success_rate", "move", "flip", "per_object", "wall_s"}, "meta": {...}}``.
 """
@@ -47,7 +49,7 @@ from hydo_cli.rollout import run_episodes, summarize  # noqa: E402
 from sim.atomic import atomic_write_text  # noqa: E402
 from sim.observe import MeshObserver  # noqa: E402
 
-VARIANTS = ("mesh", "mesh-seen", "render-mesh-normals", "render")
+VARIANTS = ("mesh-all", "mesh", "mesh-seen", "render-mesh-normals", "render")
 SEEN_M = 0.005  # a mesh sample this close to a rendered point is on the surface the cameras see
 
 
@@ -93,9 +95,17 @@ def main() -> None:
     lp = load_policy(args.model, seed=args.seed)
     for v in variants:
         (env,) = make_envs(
-            args.objects, args.goals, 0, "mesh" if v == "mesh" else "render", 1, lp.n_obj, lp.n_bg
+            args.objects,
+            args.goals,
+            0,
+            "mesh" if v in ("mesh", "mesh-all") else "render",
+            1,
+            lp.n_obj,
+            lp.n_bg,
         )
-        if v not in ("mesh", "render"):
+        if v == "mesh-all":
+            env.observer = MeshObserver(cameras=False)
+        elif v not in ("mesh", "render"):
             env.observer = HybridObserver(v, env.observer)
         t0 = time.perf_counter()
         eps = run_episodes([env], lp.policy, args.episodes, seed=args.seed)

@@ -4,7 +4,8 @@ One model runs the same episodes (``sim.goals.episode_seed``: same object, start
 rungs, each adding one difference between training and the robot cell:
 
 =============  ===============================================================================
-``env``        the training env: floating hand teleported to ``p + 0.04·n``, mesh observations
+``env``        the training env: floating hand teleported to ``p + 0.04·n`` and stopped at 30 N,
+               mesh observations of what the cameras see
 ``env-render`` the training env with rendered depth, background subtraction and PCA normals
 ``twin-true``  the twin of the cell (``robot.twin``): the full arm and its impedance controller,
                force stop and reflexes, observed through the true pose and mesh (as in training)
@@ -137,6 +138,7 @@ def run_env_rung(rung: str, model: Path, n: int, seed: int, objects: str, goals:
         RUNGS[rung],
         eps,
         refused_primitives=sum(r.rejected for r in results),
+        force_stops=sum(r.force_stops for r in results),  # the training hand's stop (FORCE_STOP_N)
         seconds=time.perf_counter() - t0,
     )
 

@@ -30,6 +30,7 @@ class EpisodeResult:
     behaviour: int | None = None  # behaviour id of a ``sim.tasks`` task episode (None: none / no task)
     start_distance: float = 0.0  # mean goal-flow norm at reset, metres
     goal_tilt_deg: float = 0.0  # how far the goal tilts the object's up direction (~0: move, ≥ 30: flip)
+    force_stops: int = 0  # primitives the hand's contact-force stop ended (sim.primitive.FORCE_STOP_N)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -58,7 +59,7 @@ def run_episodes(
             slots[k] = None
             return
         obs, info = envs[k].reset(seed=episode_seed(seed, next_ep))
-        slots[k] = {"ep": next_ep, "obs": obs, "ret": 0.0, "rej": 0, "steps": 0, "start": info}
+        slots[k] = {"ep": next_ep, "obs": obs, "ret": 0.0, "rej": 0, "stops": 0, "steps": 0, "start": info}
         if on_frame is not None:
             on_frame(next_ep, envs[k].render())
         next_ep += 1
@@ -73,6 +74,7 @@ def run_episodes(
             obs, reward, terminated, truncated, info = envs[k].step(action)
             s["obs"], s["ret"], s["steps"] = obs, s["ret"] + reward, s["steps"] + 1
             s["rej"] += int(info["rejected"])
+            s["stops"] += int(info.get("force_stopped", False))
             if on_frame is not None:
                 on_frame(s["ep"], envs[k].render())
             if terminated or truncated:
@@ -87,6 +89,7 @@ def run_episodes(
                     behaviour=info.get("behaviour"),
                     start_distance=s["start"]["distance"],
                     goal_tilt_deg=s["start"].get("goal_tilt_deg", 0.0),
+                    force_stops=s["stops"],
                 )
                 results[s["ep"]] = r
                 if on_episode is not None:

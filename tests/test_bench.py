@@ -33,13 +33,18 @@ CASES = {
             "--episodes",
             "1",
             "--variants",
-            "mesh,render-mesh-normals",
+            "mesh-all,render-mesh-normals",
         ],
-        lambda d: set(d) == {"mesh", "render-mesh-normals", "meta"} and len(d["mesh"]["successes"]) == 1,
+        lambda d: (
+            set(d) == {"mesh-all", "render-mesh-normals", "meta"} and len(d["mesh-all"]["successes"]) == 1
+        ),
     ),
     "push_forces.py": (
         ["--model", str(ROOT / "models" / "hydo-cm-6d"), "--episodes", "2"],
-        lambda d: sum(v["primitives"] for k, v in d.items() if k != "meta") > 0,
+        lambda d: (
+            sum(v["primitives"] for k, v in d.items() if k != "meta") > 0
+            and all(0 <= v["force_stopped"] <= 1 for k, v in d.items() if k != "meta")
+        ),
     ),
     "trainer.py": (
         ["--seconds", "15", "--goals", "planar", "--objects", "cube", "--log-every", "8"]
