@@ -121,3 +121,64 @@ def test_primitive_rollout_is_the_python_stepping_loop_bit_for_bit():
     scene._run_controls(controls)
     assert np.array_equal(scene.get_state(), want)
     assert np.abs(scene.object_pose()[0] - start[1 + scene.obj_qadr : 4 + scene.obj_qadr]).max() > 0.01
+
+
+def _press_down_on(scene: BinScene) -> np.ndarray:
+    """Waypoints of a push straight down onto the top of a cube resting at the bin centre: the object
+    cannot give way, so the hand's force climbs to its actuator limit (60 N vertically)."""
+    scene.set_object_pose(np.array([0.0, 0.0, 0.03]), np.array([1.0, 0, 0, 0]))
+    scene.settle()
+    w = primitive_waypoints(np.array([0.0, 0.0, 0.06]), np.array([0.0, 0, 1.0]), np.array([0.0, 0, -1.0]))
+    check_plan(w)
+    return w
+
+
+def test_hand_contact_sensor_is_the_net_contact_force_on_the_hand():
+    """The sensor the force stop reads: the norm of the summed contact forces on the hand's geoms,
+    as mj_contactForce gives them (what robot.twin's arm measures)."""
+    from sim.scene import push_controls
+
+    scene = BinScene(load_objects("cube")[0])
+    w = _press_down_on(scene)
+    m, d = scene.model, scene.data
+    d.qpos[scene.hand_qadr] = w[0]
+    d.ctrl[:] = w[0]
+    mujoco.mj_forward(m, d)
+    checked = 0
+    for row in push_controls(w, m.opt.timestep)[:150]:
+        d.ctrl[:] = row
+        mujoco.mj_step(m, d)
+        mujoco.mj_forward(m, d)  # sensors and contacts of the same state
+        total, f6 = np.zeros(3), np.zeros(6)
+        for i in range(d.ncon):
+            g = d.contact.geom[i]
+            on1, on2 = scene._is_hand_geom[g[0]], scene._is_hand_geom[g[1]]
+            if on1 == on2:
+                continue
+            mujoco.mj_contactForce(m, d, i, f6)
+            f = d.contact.frame[i].reshape(3, 3).T @ f6[:3]
+            total += f if on2 else -f
+        sensed = np.linalg.norm(d.sensordata[scene._hand_force])
+        assert sensed == pytest.approx(np.linalg.norm(total), rel=1e-6, abs=1e-9)
+        checked += sensed > 1.0
+    assert checked > 10  # the hand pressed on the cube for a good part of it
+
+
+def test_force_stop_ends_a_push_the_arm_would_stop():
+    """Pressing a cube into the floor passes 30 N: with the stop the primitive ends there and the
+    hand lets go; without it the same push runs to the end (the hand before the stop)."""
+    from sim.primitive import FORCE_STOP_N
+
+    stopped = BinScene(load_objects("cube")[0])
+    result = stopped.execute_primitive(_press_down_on(stopped))
+    assert result.executed and result.force_stopped
+    unstopped = BinScene(load_objects("cube")[0], force_stop_n=None)
+    full = unstopped.execute_primitive(_press_down_on(unstopped))
+    assert full.executed and not full.force_stopped
+    assert result.physics_steps < full.physics_steps
+    assert stopped.force_stop_n == FORCE_STOP_N == 30.0
+    # a push that only slides the cube stays under the stop
+    free = BinScene(load_objects("cube")[0])
+    free.set_object_pose(np.array([0.0, 0.0, 0.03]), np.array([1.0, 0, 0, 0]))
+    w = primitive_waypoints(np.array([-0.03, 0.0, 0.03]), np.array([-1.0, 0, 0]), np.array([1.0, 0, 0]))
+    assert not free.execute_primitive(w).force_stopped
