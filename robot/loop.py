@@ -70,7 +70,7 @@ from robot.twin_metrics import (
 )
 from sim.contract import MAX_PRIMITIVES, SUCCESS_THRESHOLD_M
 from sim.goals import episode_seed
-from sim.observe import bin_background_points, visible_surface
+from sim.observe import bin_background_points, camera_visible_surface
 from sim.primitive import PrimitiveRejected, feasibility_mask
 
 ROBOTS = ("panda", "fr3", "sim")
@@ -631,14 +631,16 @@ class Deployment:
     def _true_perception(self) -> tuple[Segmented, Registration]:
         """Twin only (``perception="true"``): the training env's observation of the true scene.
 
-        The object's visible mesh-surface samples at its true pose and the bin's background grid
-        (``sim.observe``, in the bin frame, moved to the cell's bin), and the exact transform to the
-        true goal pose in place of a registration (zero residual, distance = the true distance)."""
+        The object's mesh-surface samples at its true pose that the cell's cameras see and the bin's
+        background grid (``sim.observe``, in the bin frame, moved to the cell's bin), and the exact
+        transform to the true goal pose in place of a registration (zero residual, distance = the
+        true distance)."""
         w = self.world
         T_obj = w.object_T()
         to_bin = np.eye(4)
         to_bin[:3, 3] = -self.cell.bin_center
-        p, n = visible_surface(w.asset.surface_points, w.asset.surface_normals, to_bin @ T_obj)
+        views = [(c.K, to_bin @ c.T_base_camera, (c.height, c.width)) for c in self.cell.cameras]
+        p, n = camera_visible_surface(w.asset.surface_points, w.asset.surface_normals, to_bin @ T_obj, views)
         offset = self.cell.bin_center.astype(np.float32)
         masks = [w.true_mask(i) for i in range(len(self.cell.cameras))]
         seg = Segmented(

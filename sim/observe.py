@@ -100,6 +100,30 @@ def visible_surface(
     return p.compress(keep, axis=0), n.compress(keep, axis=0)  # p[keep], several times faster
 
 
+def camera_visible_surface(
+    points_obj: np.ndarray,
+    normals_obj: np.ndarray,
+    T: np.ndarray,
+    cameras: list,
+    points_world: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The training observation's object cloud: the samples (S, 3) / normals (S, 3) in the object
+    frame -> those some camera sees at pose ``T``, bin frame (floor at z = 0), metres.
+
+    ``visible_surface``'s test (not facing the floor, not touching it), then the z-buffer of the
+    object's own samples in ``cameras`` (``sim.depth.seen_from_cameras``' form, bin frame). Fewer than
+    ``MIN_VISIBLE_POINTS`` left: the floor test alone, then every sample (a degenerate view)."""
+    p = transform_points(T, points_obj) if points_world is None else points_world
+    keep = visible_mask(normals_obj, T, p)
+    if cameras:
+        seen = keep & seen_from_cameras(p, None, cameras)
+        if seen.sum() >= MIN_VISIBLE_POINTS:
+            keep = seen
+    if keep.sum() < MIN_VISIBLE_POINTS:
+        keep = np.ones(len(p), bool)
+    return p.compress(keep, axis=0), normals_obj.compress(keep, axis=0) @ T[:3, :3].T
+
+
 class MeshObserver:
     """Segmented clouds from mesh-surface samples and the simulated poses (no rendering).
 
@@ -120,16 +144,14 @@ class MeshObserver:
 
     def segmented_clouds(self, scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(obj_points (M, 3), obj_normals (M, 3), bg_points (L, 3))`` world frame, metres."""
-        surface, T = scene.object_surface(), scene.object_T()  # (S, 3) every sample at the pose
-        n_obj = scene.asset.surface_normals
-        keep = visible_mask(n_obj, T, surface)
-        if self.cameras:
-            seen = keep & seen_from_cameras(surface, None, self._scene_views(scene.model))
-            if seen.sum() >= MIN_VISIBLE_POINTS:
-                keep = seen
-        if keep.sum() < MIN_VISIBLE_POINTS:  # degenerate view (e.g. mid-air): everything, not nothing
-            keep = np.ones(len(surface), bool)
-        obj_p, obj_n = surface.compress(keep, axis=0), n_obj.compress(keep, axis=0) @ T[:3, :3].T
+        views = self._scene_views(scene.model) if self.cameras else []
+        obj_p, obj_n = camera_visible_surface(
+            scene.asset.surface_points,
+            scene.asset.surface_normals,
+            scene.object_T(),
+            views,
+            scene.object_surface(),
+        )
         bg = [bin_background_points()]
         for i, c in enumerate(scene.clutter):
             bg.append(visible_surface(c.surface_points, c.surface_normals, scene.object_T(f"clutter{i}"))[0])
