@@ -199,7 +199,8 @@ def test_fr3_against_franky_sim_on_loopback(cell, tmp_path):
             stopper.join(timeout=30)
             assert stopped.outcome is Outcome.critical and "preempted" in stopped.message
             assert stopped.errors == ()  # no error flag: classify_errors() calls that critical
-            assert start[2] - 0.10 + 0.01 < robot.fingertip()[2] < start[2] - 1e-3  # stopped part-way
+            # stopped part-way: it moved (on a loaded machine the stop can land within a millimetre of the start)
+            assert start[2] - 0.10 + 0.01 < robot.fingertip()[2] < start[2] - 2e-4
             robot.recover()
             assert robot.robot_mode() is RobotMode.idle and robot.current_errors() == ()
             assert robot.send(down).outcome is Outcome.ok  # the same move again, after recovery
