@@ -90,14 +90,10 @@ def visible_mask(normals_obj: np.ndarray, T: np.ndarray, points_world: np.ndarra
 def visible_surface(
     points_obj: np.ndarray, normals_obj: np.ndarray, T: np.ndarray, points_world: np.ndarray | None = None
 ):
-    """Surface samples (S, 3) and normals (S, 3) in the object frame -> the visible ones, world frame.
+    """Surface samples (S, 3) and normals (S, 3) in the object frame -> those not facing or touching
+    the floor, world frame (``camera_visible_surface`` without cameras: clutter, render fallbacks).
     ``points_world``: the samples at ``T`` (``transform_points(T, points_obj)``) if the caller has them."""
-    p = transform_points(T, points_obj) if points_world is None else points_world
-    n = normals_obj @ T[:3, :3].T
-    keep = visible_mask(normals_obj, T, p)
-    if keep.sum() < MIN_VISIBLE_POINTS:  # degenerate view (e.g. mid-air): everything rather than nothing
-        return p.copy(), n  # a copy, as p[keep] would be (points_world may be a cache)
-    return p.compress(keep, axis=0), n.compress(keep, axis=0)  # p[keep], several times faster
+    return camera_visible_surface(points_obj, normals_obj, T, [], points_world)
 
 
 def camera_visible_surface(
