@@ -109,6 +109,9 @@ class TrainConfig:
     relabel_future: Fraction = 0.0
     """Hindsight relabelling: the fraction of each sampled batch whose goal becomes the object pose
     after this or a later primitive of its episode (HER's "future" strategy, models.replay)."""
+    n_step: Count = 1
+    """Primitives per TD target: the critic learns from the return of up to ``n_step`` primitives of
+    an episode and bootstraps after them (``models.replay.ReplayBuffer.n_step_chain``)."""
     workers: Count = 2
     """Data-parallel worker processes, one per core (hydo_cli.trainer): each steps n_envs / workers
     envs and computes the gradient of batch_size / workers transitions. 1: the serial loop."""

@@ -476,7 +476,9 @@ class Trainer:
                     if self.env_steps >= cfg.learning_starts and len(self.buffer) >= batch_size:
                         update_debt += cfg.updates_per_step * cfg.n_envs
                         while update_debt >= 1.0:
-                            sampled = self.buffer.sample(batch_size, cfg.relabel_future)
+                            sampled = self.buffer.sample(
+                                batch_size, cfg.relabel_future, cfg.n_step, self.agent.config.gamma
+                            )
                             with update_autocast(self.precision):
                                 last_metrics = self.agent.update(sampled)
                             self.updates += 1

@@ -659,7 +659,8 @@ class HybridAgent:
                 if subset:
                     a_s, logp_s = self.motion_policy.sample(f_obj, noise_s)  # (B, N_obj, 3), (B, N_obj)
             v_next = (pi_next * soft_q).sum(-1)  # (B,)
-            target_q = batch.reward + cfg.gamma * (1.0 - batch.terminated) * v_next  # (B,)
+            discount = cfg.gamma if batch.discount is None else batch.discount  # γ, or γ^m (n-step)
+            target_q = batch.reward + discount * (1.0 - batch.terminated) * v_next  # (B,)
 
         # 3. Critic loss on the executed (index, motion); trains encoder + critic.
         q_taken = self.critic(f_taken, batch.motion)  # (B, 2)

@@ -57,6 +57,7 @@ class ReplayBatch(NamedTuple):
     truncated: torch.Tensor  # (B,) 1.0 where it hit the primitive cap (still bootstraps)
     normals: torch.Tensor | None = None  # (B, N_obj, 3) unit outward normals of the object points
     next_normals: torch.Tensor | None = None  # (B, N_obj, 3)
+    discount: torch.Tensor | None = None  # (B,) γ^m of an m-primitive return (n-step); None: γ
 
 
 class Transition(NamedTuple):
@@ -277,30 +278,46 @@ class ReplayBuffer:
         self.unsaved = max(0, self.unsaved - ahead)
         self._last_slot.clear()
 
-    def sample(self, batch_size: int, relabel_future: float = 0.0) -> ReplayBatch:
+    def sample(
+        self, batch_size: int, relabel_future: float = 0.0, n_step: int = 1, gamma: float = 0.99
+    ) -> ReplayBatch:
         """Uniformly sample ``batch_size`` stored transitions (with replacement across calls).
 
         ``relabel_future = f`` relabels about a fraction ``f`` of them (those stored with poses) with a
         goal reached later in their episode (:meth:`relabel`).
+
+        ``n_step = n > 1``: each transition that is not relabelled carries the return of up to ``n``
+        primitives of its episode, ``Σ_{k<m} γ^k r_{t+k}``, the next observation and ``terminated``
+        of primitive ``t+m−1`` and ``discount = γ^m`` (:meth:`n_step_chain`), so the critic's target
+        reaches ``m`` primitives back in one update. Relabelled transitions stay one-step (their goal
+        is not the one their later rewards were paid for).
         """
         if len(self) == 0:
             raise ValueError("cannot sample from an empty replay buffer")
         if not 0.0 <= relabel_future <= 1.0:
             raise ValueError(f"`relabel_future` must be in [0, 1]. Got {relabel_future}.")
+        if n_step < 1:
+            raise ValueError(f"`n_step` must be ≥ 1. Got {n_step}.")
         i = self.rng.integers(0, len(self), size=batch_size)
-        cols = {
-            "points": self.points[i].astype(np.float32),
-            "features": self.features[i].astype(np.float32),
-            "next_points": self.next_points[i].astype(np.float32),
-            "next_features": self.next_features[i].astype(np.float32),
-            "reward": self.reward[i],
-            "terminated": self.terminated[i],
-        }
+        rows = np.zeros(0, dtype=np.int64)
         if relabel_future > 0.0:
             pick = (self.rng.random(batch_size) < relabel_future) & self.has_poses[i]
             rows = np.flatnonzero(pick)
-            if rows.size:
-                self.relabel(i[rows], rows, cols)
+        last, reward, steps = i, self.reward[i], None  # one primitive each
+        if n_step > 1:
+            one_step = np.zeros(batch_size, dtype=np.bool_)
+            one_step[rows] = True
+            last, reward, steps = self.n_step_chain(i, n_step, gamma, one_step)
+        cols = {
+            "points": self.points[i].astype(np.float32),
+            "features": self.features[i].astype(np.float32),
+            "next_points": self.next_points[last].astype(np.float32),
+            "next_features": self.next_features[last].astype(np.float32),
+            "reward": np.array(reward, dtype=np.float32),
+            "terminated": self.terminated[last],
+        }
+        if rows.size:
+            self.relabel(i[rows], rows, cols)
 
         def t(x: np.ndarray, dtype=torch.float32) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(x)).to(device=self.device, dtype=dtype)
@@ -314,10 +331,38 @@ class ReplayBuffer:
             next_points=t(cols["next_points"]),
             next_features=t(cols["next_features"]),
             terminated=t(cols["terminated"]),
-            truncated=t(self.truncated[i]),
+            truncated=t(self.truncated[last]),
             normals=t(self.normals[i]),
-            next_normals=t(self.next_normals[i]),
+            next_normals=t(self.next_normals[last]),
+            discount=None if steps is None else t(gamma ** steps.astype(np.float64)),
         )
+
+    def n_step_chain(
+        self, slots: np.ndarray, n: int, gamma: float, one_step: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Follow each slot (S,) up to ``n − 1`` primitives on along its episode's links.
+
+        Returns ``(last (S,) int, ret (S,) float64, m (S,) int)``: the slot of the last primitive
+        taken, ``Σ_{k<m} γ^k r`` over the ``m`` primitives and ``m`` (1 … n). A chain stops early at
+        the episode's end (a terminated or truncated primitive has no link), at a transition stored
+        without poses (no link either), and where ``one_step`` is set. The intermediate primitives'
+        entropy terms are left out of the return, as n-step SAC implementations do: the bootstrap
+        at the end carries the soft value.
+        """
+        slots = np.asarray(slots, dtype=np.int64)
+        cur = slots.copy()
+        ret = self.reward[cur].astype(np.float64)
+        m = np.ones(slots.shape, dtype=np.int64)
+        live = np.ones(slots.shape, dtype=np.bool_) if one_step is None else ~np.asarray(one_step)
+        for k in range(1, n):
+            nxt = self.next_slot[cur]
+            live &= nxt >= 0
+            if not live.any():
+                break
+            cur = np.where(live, nxt, cur)
+            ret += np.where(live, gamma**k * self.reward[cur], 0.0)
+            m += live
+        return cur, ret, m
 
     def future_slots(self, slots: np.ndarray) -> np.ndarray:
         """For each slot (S,), a uniformly drawn slot of the same episode at or after it (S,) int.

@@ -144,6 +144,23 @@ def test_only_terminated_masks_the_bootstrap(algo):
     assert targets["truncated"] != 0.0
 
 
+@pytest.mark.parametrize("algo", ["hydo-cm", "hacman"])
+def test_n_step_discount_scales_the_bootstrap(algo):
+    """An n-step batch's ``discount`` (γ^m) replaces γ in the target: r + γ^m · V(s')."""
+    base = HybridAgent(AgentConfig(algo=algo, **SMALL))
+    state = base.state_dict()
+    targets = {}
+    for discount in (None, 0.99**3, 0.0):
+        agent = HybridAgent(AgentConfig(algo=algo, **SMALL))
+        agent.load_state_dict(state)
+        torch.manual_seed(0)
+        d = None if discount is None else torch.full((4,), discount)
+        batch = make_batch(4, 16, 16, reward=torch.zeros(4), terminated=torch.zeros(4), discount=d)
+        targets[discount] = agent.update(batch)["target_q"]
+    assert targets[0.0] == 0.0
+    assert targets[0.99**3] == pytest.approx(targets[None] * 0.99**2, rel=1e-4)  # γ is 0.99
+
+
 @pytest.mark.parametrize("algo", list(ALGOS))
 def test_checkpoint_resume_reproduces_next_update(algo, tmp_path):
     cfg = AgentConfig(algo=algo, **SMALL)

@@ -93,7 +93,7 @@ def test_save_load_resumes_sampling(tmp_path):
     assert len(loaded) == 10 and loaded.pos == buf.pos
     a, b = buf.sample(6), loaded.sample(6)
     for x, y in zip(a, b, strict=True):
-        assert torch.equal(x, y)
+        assert (x is None and y is None) or torch.equal(x, y)
     assert not list(tmp_path.glob(".*.tmp"))
 
 
@@ -323,3 +323,45 @@ def test_a_damaged_or_foreign_segment_is_refused_in_one_line(tmp_path):
     np.savez(tmp_path / "bad-slots.npz", **arrays)
     with pytest.raises(CheckpointError, match=r"`slots` must lie in \[0, 6\)"):
         apply_replay_segment(ReplayBuffer(6, 4, 4), tmp_path / "bad-slots.npz")
+
+
+def test_n_step_returns_follow_the_episode_and_stop_at_its_end():
+    """n = 3: each sampled transition carries Σ_k γ^k r over up to 3 primitives of its own episode,
+    the next observation and termination of the last of them and discount γ^m; chains stop at the
+    episode's end (here a 5-primitive episode truncated at its cap and one ended by success)."""
+    rng = np.random.default_rng(11)
+    n_obj, gamma = 8, 0.9
+    local = rng.uniform(-0.03, 0.03, (n_obj, 3))
+    goal = _pose(rng)
+    ep_a, _ = _episode(rng, local, 5, goal)
+    ep_b, _ = _episode(rng, local, 4, goal, success_at=1)  # ends terminated at its 2nd primitive
+    assert ep_a[-1]["truncated"] and ep_b[-1]["terminated"] and len(ep_b) == 2
+    buf = ReplayBuffer(32, n_obj, 4, seed=3)
+    for t in range(5):  # two envs interleaved, as the trainer adds them
+        rows = [ep[t] for ep in (ep_a, ep_b) if t < len(ep)]
+        buf.add(Transition(**{k: np.stack([np.asarray(r[k]) for r in rows]) for k in rows[0]}))
+    want = []  # per stored transition: (its points, return, next points, terminated, m)
+    for ep in (ep_a, ep_b):
+        for t in range(len(ep)):
+            m = min(3, len(ep) - t)
+            ret = sum(gamma**k * float(ep[t + k]["reward"]) for k in range(m))
+            last = ep[t + m - 1]
+            want.append((ep[t]["points"], ret, last["next_points"], last["terminated"], m))
+    batch = buf.sample(256, n_step=3, gamma=gamma)
+    seen = set()
+    for b in range(256):
+        (ret, next_points, terminated, m), *_ = [
+            w[1:] for w in want if np.allclose(batch.points[b].numpy(), w[0], atol=2e-4)
+        ]
+        assert batch.reward[b].item() == pytest.approx(ret, abs=1e-3)
+        np.testing.assert_allclose(batch.next_points[b].numpy(), next_points, atol=2e-4)
+        assert batch.terminated[b].item() == float(terminated)
+        assert batch.discount[b].item() == pytest.approx(gamma**m)
+        seen.add(m)
+    assert seen == {1, 2, 3}  # full chains, and chains cut by the cap and by success
+    one = buf.sample(16)  # n = 1: the stored transition itself, and the agent's own γ
+    assert one.discount is None
+    relabelled = buf.sample(64, relabel_future=1.0, n_step=3, gamma=gamma)
+    np.testing.assert_allclose(relabelled.discount.numpy(), gamma)  # relabelled rows stay one-step
+    with pytest.raises(ValueError, match="n_step"):
+        buf.sample(4, n_step=0)
