@@ -39,6 +39,14 @@ CASES = {
             set(d) == {"mesh-all", "render-mesh-normals", "meta"} and len(d["mesh-all"]["successes"]) == 1
         ),
     ),
+    "outside_meshes.py": (
+        ["--model", str(ROOT / "models" / "hydo-cm-6d"), "--episodes", "2", "--per-kind", "1"],
+        lambda d: (
+            len(d["meta"]["meshes"]) == 9  # one blob, rock and multi-part body, six household shapes
+            and sum(n for _, n in d["outside"]["per_object"].values()) == 2
+            and d["gap"] == pytest.approx(d["unseen"]["success_rate"] - d["outside"]["success_rate"])
+        ),
+    ),
     "push_forces.py": (
         ["--model", str(ROOT / "models" / "hydo-cm-6d"), "--episodes", "2"],
         lambda d: (
