@@ -171,12 +171,9 @@ def main() -> None:
             if world.asset is not asset:
                 world.load(asset)
             world.reset_arm()
-            world.set_object_pose(*goal)
-            world.settle_object()
-            T_goal = world.object_T()
+            T_goal = world.place_object(*goal)
             goal_points = segment(cams.capture(), background, cell, rng).obj_points
-            world.set_object_pose(*start)
-            world.settle_object()
+            world.place_object(*start)
             kind = "flip" if _tilt_deg(world.object_T(), T_goal) >= FLIP_TILT_DEG else "move"
             row = {"episode": ep, "object": asset.name, "kind": kind}
             row["start"] = measure(cell, world, cams, background, T_goal, goal_points, args.goals, ep, rng)
@@ -184,8 +181,7 @@ def main() -> None:
             shift = rng.uniform(*NEAR_SHIFT_M) * np.array([np.cos(a), np.sin(a)])
             pos, quat = np.array(goal[0], float), np.array(goal[1], float)
             pos[:2] += shift
-            world.set_object_pose(pos, _quat_yaw(quat, np.deg2rad(rng.uniform(-NEAR_YAW_DEG, NEAR_YAW_DEG))))
-            world.settle_object()
+            world.place_object(pos, _quat_yaw(quat, np.deg2rad(rng.uniform(-NEAR_YAW_DEG, NEAR_YAW_DEG))))
             row["near"] = measure(cell, world, cams, background, T_goal, goal_points, args.goals, ep, rng)
             episodes.append(row)
     world.close()

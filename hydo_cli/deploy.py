@@ -308,8 +308,7 @@ def capture_goal_cmd(
             if world is not None:
                 bg = Background.load(background, c) if background is not None else capture_background(cams, c)
                 _, (pos, quat), _ = sample_episode(world, (asset,), "planar", rng)
-                world.set_object_pose(pos, quat)
-                world.settle_object()
+                world.place_object(pos, quat)
             else:
                 bg = Background.load(background or Path(c.source).with_name("background.npz"), c)
             seg = segment(cams.capture(), bg, c, rng)

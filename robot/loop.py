@@ -606,9 +606,7 @@ class Deployment:
         w.reset_arm()
         self._true_goal_T = None
         if self.cfg.goal is None and self.cfg.goal_offset is None:
-            w.set_object_pose(*goal_pose)
-            w.settle_object()
-            self._true_goal_T = w.object_T()
+            self._true_goal_T = w.place_object(*goal_pose)
             if self.cfg.perception == "true":
                 seg, _ = self._true_perception()  # (T_goal is known: the cloud is only logged)
             else:
@@ -617,8 +615,7 @@ class Deployment:
             self.goal.save(self.log.folder / "goals" / f"e{ep:03d}.npz")
         elif self.cfg.goal_offset is not None:
             self.goal = None  # made from the first observation
-        w.set_object_pose(*start)
-        w.settle_object()
+        w.place_object(*start)
         self.log.event(
             "twin_episode",
             episode=ep,

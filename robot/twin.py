@@ -316,6 +316,13 @@ class TwinWorld:
             if calm >= 10:
                 break
 
+    def place_object(self, pos, quat_wxyz) -> np.ndarray:
+        """Put the object at ``pos`` (m, base frame), ``quat_wxyz`` and let it settle; returns the
+        pose (4, 4) it came to rest at (an episode's start or goal as the cameras will see it)."""
+        self.set_object_pose(pos, quat_wxyz)
+        self.settle_object()
+        return self.object_T()
+
     # --- rendering ---------------------------------------------------------------------------------
     def _renderer(self, height: int, width: int) -> mujoco.Renderer:
         key = (height, width)

@@ -54,12 +54,9 @@ def _episode_clouds(twin, seed: int, episode: int):
     )
     world.load(asset)
     world.reset_arm()
-    world.set_object_pose(*goal)
-    world.settle_object()
-    T_goal = world.object_T()
+    T_goal = world.place_object(*goal)
     goal_points = segment(cams.capture(), background, cell, rng).obj_points
-    world.set_object_pose(*start)
-    world.settle_object()
+    world.place_object(*start)
     start_points = segment(cams.capture(), background, cell, rng).obj_points
     return asset, goal_points, start_points, T_goal
 

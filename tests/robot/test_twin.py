@@ -35,8 +35,7 @@ def world(cell):
 def place_cube(world, cell, xy=(0.54, 0.0)):
     world.reset_arm()
     world.weld_object(False)
-    world.set_object_pose(np.array([xy[0], xy[1], cell.floor_z + 0.03]), [1.0, 0, 0, 0])
-    world.settle_object()
+    world.place_object(np.array([xy[0], xy[1], cell.floor_z + 0.03]), [1.0, 0, 0, 0])
 
 
 def test_arm_starts_at_home_out_of_view_of_the_bin(world, cell):
@@ -213,12 +212,9 @@ def test_rendered_segmentation_and_registration_match_the_twin(world, cell):
     world.hide_object()
     with open_cameras(cell, "sim", world=world) as cams:
         bg = capture_background(cams, cell, 3)
-        world.set_object_pose([0.55, 0.05, cell.floor_z + 0.03], [1.0, 0, 0, 0])
-        world.settle_object()
-        T_goal = world.object_T()
+        T_goal = world.place_object([0.55, 0.05, cell.floor_z + 0.03], [1.0, 0, 0, 0])
         goal = segment(cams.capture(), bg, cell, rng)
-        world.set_object_pose([0.46, -0.06, cell.floor_z + 0.03], [np.cos(0.3), 0, 0, np.sin(0.3)])
-        world.settle_object()
+        world.place_object([0.46, -0.06, cell.floor_z + 0.03], [np.cos(0.3), 0, 0, np.sin(0.3)])
         seg = segment(cams.capture(), bg, cell, rng)
     true = np.stack([world.true_mask(i) for i in range(3)])
     assert mask_iou(np.stack(seg.masks), true) > 0.85
