@@ -21,6 +21,9 @@ SPLIT_TITLES = {
 #: up): poses on one face differ by yaw only (tilt ~0; a near-symmetry may add ~10°), poses on two
 #: faces by the angle between the faces.
 FLIP_TILT_DEG = 30.0
+#: A flip that tilts the up direction this much or more turns the object over (a box upside down: two
+#: tips, or one push that rolls it); below it, a flip lays the object on a side (one tip).
+FLIP_OVER_DEG = 120.0
 
 #: The paper's method names (design.md §1), in Table I's row order; baselines after them.
 METHOD_NAMES = {
@@ -66,7 +69,8 @@ def run_summary(results: Sequence, task=None) -> dict:
         "rejected_primitives": s["rejected_primitives"],
         "episodes_with_rejected": sum(r.rejected > 0 for r in results),
         "per_object": {
-            k: {"episodes": len(v), "success_rate": float(np.mean(v))} for k, v in sorted(per_object.items())
+            k: {"episodes": len(v), "success_rate": float(np.mean(v)), **_flip_share(results, k)}
+            for k, v in sorted(per_object.items())
         },
         "by_goal": goal_kind_breakdown(results),
     }
@@ -84,12 +88,26 @@ def run_summary(results: Sequence, task=None) -> dict:
     return out
 
 
+def _flip_share(results: Sequence, obj: str) -> dict:
+    """``flip_episodes`` and ``flip_success_rate`` of one object's episodes (empty without flips)."""
+    flips = [r.success for r in results if r.object == obj and r.goal_tilt_deg >= FLIP_TILT_DEG]
+    return {"flip_episodes": len(flips), "flip_success_rate": float(np.mean(flips))} if flips else {}
+
+
 def goal_kind_breakdown(results: Sequence) -> dict[str, dict]:
     """Success by what the goal asks: ``move`` (same face up: translate and yaw) or ``flip`` (another
-    face up, ``goal_tilt_deg`` ≥ FLIP_TILT_DEG), with the episodes' start and final distances (m)."""
+    face up, ``goal_tilt_deg`` ≥ FLIP_TILT_DEG), with the episodes' start and final distances (m).
+    ``flip`` is split again into ``flip_side`` (tilt under FLIP_OVER_DEG: onto a side) and
+    ``flip_over`` (turned over); a kind without episodes has no row."""
     out = {}
-    for kind in ("move", "flip"):
-        rs = [r for r in results if (r.goal_tilt_deg >= FLIP_TILT_DEG) == (kind == "flip")]
+    kinds = {
+        "move": lambda t: t < FLIP_TILT_DEG,
+        "flip": lambda t: t >= FLIP_TILT_DEG,
+        "flip_side": lambda t: FLIP_TILT_DEG <= t < FLIP_OVER_DEG,
+        "flip_over": lambda t: t >= FLIP_OVER_DEG,
+    }
+    for kind, is_kind in kinds.items():
+        rs = [r for r in results if is_kind(r.goal_tilt_deg)]
         if not rs:
             continue
         failed = [r.final_distance for r in rs if not r.success]

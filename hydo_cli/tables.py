@@ -81,7 +81,10 @@ def object_rows(report: dict, split: str) -> tuple[list[str], list[list[str]]]:
         cells = []
         for r in runs:
             p = r["per_object"].get(o)
-            cells.append("-" if p is None else f"{p['success_rate']:.0%} ({p['episodes']})")
+            cell = "-" if p is None else f"{p['success_rate']:.0%} ({p['episodes']})"
+            if p is not None and p.get("flip_episodes"):  # 6D goals: the object's flips on their own
+                cell += f", flips {p['flip_success_rate']:.0%} ({p['flip_episodes']})"
+            cells.append(cell)
         rows.append([o, *cells])
     return header, rows
 

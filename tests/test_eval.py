@@ -54,6 +54,8 @@ def test_goal_kinds_split_moves_from_flips_at_30_degrees():
     assert kinds["flip"]["episodes"] == 3 and kinds["flip"]["success_rate"] == 1 / 3
     assert kinds["flip"]["median_failed_final_distance_m"] == pytest.approx(0.10)
     assert kinds["move"]["mean_start_distance_m"] == pytest.approx(0.2)
+    assert kinds["flip_side"]["episodes"] == 2 and kinds["flip_side"]["success_rate"] == 0.5
+    assert kinds["flip_over"]["episodes"] == 1 and kinds["flip_over"]["success_rate"] == 0.0
     assert set(goal_kind_breakdown(results[:1])) == {"move"}  # planar goals: no flip row
 
 
