@@ -17,8 +17,8 @@ ObjectsOpt = Annotated[
     str,
     typer.Option(
         "--objects",
-        help="Object set: train | unseen-instance | unseen-category | unseen | all | cube | an object name "
-        "| a folder of .obj/.stl meshes.",
+        help="Object set: train | unseen-instance | unseen-category | unseen | all | cube | train-wide "
+        "(train plus 64 more instances of its categories) | an object name | a folder of .obj/.stl meshes.",
     ),
 ]
 GoalsOpt = Annotated[Goals, typer.Option("--goals", help="Goal mode: planar (translation only) or 6d.")]

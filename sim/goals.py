@@ -22,7 +22,7 @@ import numpy as np
 
 from sim.atomic import atomic_write
 from sim.contract import pose_matrix, symmetric_goal, transform_points
-from sim.objects import ObjectAsset, builtin_objects, cache_root, geometry_hash
+from sim.objects import ObjectAsset, builtin_objects, cache_root, extra_train_objects, geometry_hash
 from sim.primitive import BIN_INNER_SIZE_M
 from sim.symmetry import symmetries
 
@@ -226,8 +226,10 @@ def sample_episode(assets, goal_mode: str, rng: np.random.Generator, poses: dict
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m sim.goals``: regenerate the shipped stable poses of every built-in object
-    (deterministic; ~1-2 min); ``python -m sim.goals MESH_OR_FOLDER ...``: compute and cache those of
+    """``python -m sim.goals``: compute the shipped stable poses of every built-in and ``train-extra``
+    object missing from the shipped file (``--recompute``: all of them; deterministic, ~1 s per
+    object; entries already shipped are kept, so the episodes behind earlier figures do not move
+    with another CPU's rounding); ``python -m sim.goals MESH_OR_FOLDER ...``: compute and cache those of
     user meshes ahead of training (what ``--objects FOLDER`` would do on first use), with a bar per
     object and one over all of them."""
     import argparse
@@ -238,16 +240,26 @@ def main(argv: list[str] | None = None) -> None:
 
     ap = argparse.ArgumentParser(prog="python -m sim.goals", description=main.__doc__.splitlines()[0])
     ap.add_argument("meshes", nargs="*", help="user .obj/.stl files or folders of them (default: built-ins)")
+    ap.add_argument("--recompute", action="store_true", help="recompute shipped entries too")
     args = ap.parse_args(argv)
     try:
-        assets = [a for spec in args.meshes for a in load_objects(spec)] if args.meshes else builtin_objects()
+        if args.meshes:
+            assets = [a for spec in args.meshes for a in load_objects(spec)]
+        else:
+            assets = list(builtin_objects()) + list(extra_train_objects())
     except (ValueError, ObjectMeshError) as e:  # a bad path or mesh: one line, no traceback
         ap.exit(1, f"python -m sim.goals: error: {e}\n")
-    columns = (TextColumn("{task.description:<32}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    shipped = {} if args.recompute or not SHIPPED_FILE.exists() else dict(np.load(SHIPPED_FILE))
     arrays = {}
+    columns = (TextColumn("{task.description:<32}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns) as bar:
         overall = bar.add_task("objects", total=len(assets))
         for asset in assets:
+            key = f"{asset.name}-{geometry_hash(asset)}"
+            if not args.meshes and key in shipped:
+                arrays[key] = shipped[key]
+                bar.advance(overall)
+                continue
             task = bar.add_task(f"  {asset.name}", total=N_STABLE_POSES)
 
             def tick(i, n, task=task):
@@ -256,7 +268,7 @@ def main(argv: list[str] | None = None) -> None:
             if args.meshes:  # cached under $HYDO_CACHE, where training looks them up
                 stable_poses(asset, progress=tick)
             else:
-                arrays[f"{asset.name}-{geometry_hash(asset)}"] = compute_stable_poses(asset, progress=tick)
+                arrays[key] = compute_stable_poses(asset, progress=tick)
             bar.update(task, completed=N_STABLE_POSES)
             bar.advance(overall)
     if args.meshes:

@@ -34,6 +34,11 @@ split                     categories (instances)
 ``unseen-category`` (12)  torus, u_prism, cone (frustum), hex_prism, cross, wedge (``_00..01`` each)
 ========================= ===================================================================
 
+``train-extra`` (64, built on first use by :func:`extra_train_objects`, not in ``all``): instances
+``_05..12`` of each training category, for training on more shapes of the same categories
+(``--objects train-wide`` = ``train`` + ``train-extra``); no category is added, so the unseen splits
+stay unseen.
+
 The special spec ``cube`` is a 6 cm cube named ``cube``; it **is also part of** ``train`` (category
 ``box``), so a policy trained on ``train`` has seen it.
 
@@ -56,7 +61,19 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 SPLITS = ("train", "unseen-instance", "unseen-category")
-SPEC_CHOICES = ("train", "unseen-instance", "unseen-category", "unseen", "all", "cube")
+#: ``train-extra``: more instances of the training categories, for training only (never evaluated
+#: as a split of Table I); ``train-wide``: ``train`` and ``train-extra`` together.
+EXTRA_SPLIT = "train-extra"
+SPEC_CHOICES = (
+    "train",
+    "unseen-instance",
+    "unseen-category",
+    "unseen",
+    "all",
+    "cube",
+    EXTRA_SPLIT,
+    "train-wide",
+)
 
 N_SURFACE_SAMPLES = 2048  # surface samples per object
 INSIDE_TOL_M = 0.0005  # a sample this close to (or inside) another part is not on the outer surface
@@ -381,6 +398,8 @@ UNSEEN_CATEGORIES: dict[str, _Generator] = {
     "wedge": _gen_wedge,
 }
 N_TRAIN_INSTANCES, N_UNSEEN_INSTANCES, N_UNSEEN_CATEGORY_INSTANCES = 4, 1, 2
+#: ``train-extra`` instances per training category: ``_05`` onwards (``_04`` stays unseen-instance).
+N_EXTRA_TRAIN_INSTANCES = 8
 CUBE_SIZE_M = 0.06
 
 
@@ -448,11 +467,36 @@ def builtin_objects() -> tuple[ObjectAsset, ...]:
     )
 
 
+@functools.cache
+def extra_train_objects() -> tuple[ObjectAsset, ...]:
+    """The ``train-extra`` split: instances ``_05`` .. ``_12`` of every training category (64
+    objects), from the same generators and name seeds as the built-in set. Built on first use only
+    (about as long again as :func:`builtin_objects`), so commands that never ask for them do not pay
+    for them. Not part of ``all``: ``all`` is the evaluated set."""
+    first = N_TRAIN_INSTANCES + N_UNSEEN_INSTANCES
+    names = [
+        (f"{cat}_{i:02d}", cat, gen)
+        for cat, gen in TRAIN_CATEGORIES.items()
+        for i in range(first, first + N_EXTRA_TRAIN_INSTANCES)
+    ]
+    return tuple(
+        _make_asset(name, cat, EXTRA_SPLIT, gen(np.random.default_rng([_seed(name), 0])))
+        for name, cat, gen in names
+    )
+
+
+def _is_extra_name(s: str) -> bool:
+    cat, _, num = s.rpartition("_")
+    first = N_TRAIN_INSTANCES + N_UNSEEN_INSTANCES
+    return cat in TRAIN_CATEGORIES and num.isdigit() and first <= int(num) < first + N_EXTRA_TRAIN_INSTANCES
+
+
 def load_objects(spec: str | Path) -> tuple[ObjectAsset, ...]:
     """Objects for a spec; returns a non-empty tuple of :class:`ObjectAsset` (metres, object frame).
 
     ``spec`` is one of ``SPEC_CHOICES`` (``unseen`` is both unseen splits, ``all`` every built-in
-    object, ``cube`` the single 6 cm cube), a built-in object name such as ``"mug_02"``, or a path
+    object, ``cube`` the single 6 cm cube, ``train-extra`` / ``train-wide`` the extra training
+    instances alone / with ``train``: :func:`extra_train_objects`), a built-in object name such as ``"mug_02"``, or a path
     to a ``.obj`` / ``.stl`` file or to a folder whose ``.obj`` / ``.stl`` files (not sub-folders)
     are loaded in name order with :func:`load_user_mesh`. Raises ``ObjectMeshError`` for a bad mesh
     or a folder without meshes, and ``ValueError`` for a spec that is none of these.
@@ -465,9 +509,15 @@ def load_objects(spec: str | Path) -> tuple[ObjectAsset, ...]:
         return tuple(o for o in objs if o.split in ("unseen-instance", "unseen-category"))
     if s == "all":
         return objs
+    if s == EXTRA_SPLIT:
+        return extra_train_objects()
+    if s == "train-wide":
+        return tuple(o for o in objs if o.split == "train") + extra_train_objects()
     by_name = {o.name: o for o in objs}  # includes "cube"
     if s in by_name:
         return (by_name[s],)
+    if _is_extra_name(s):
+        return tuple(o for o in extra_train_objects() if o.name == s)
     path = Path(spec)
     if path.is_dir():
         files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)

@@ -58,6 +58,30 @@ def test_set_size_names_and_splits(objs):
     assert {o.name for o in load_objects("all")} == set(names)
 
 
+def test_train_extra_adds_instances_of_training_categories_only(objs, tmp_path, monkeypatch):
+    extra = load_objects("train-extra")
+    wide = load_objects("train-wide")
+    train = load_objects("train")
+    assert len(extra) == 64 and all(o.split == "train-extra" for o in extra)
+    names = {o.name for o in objs}
+    assert names.isdisjoint(o.name for o in extra)  # new shapes, and not part of `all`
+    assert {o.name for o in wide} == {o.name for o in train} | {o.name for o in extra}
+    assert {o.category for o in extra} == {o.category for o in train}  # no category is added
+    assert not any(np.allclose(e.extents, o.extents) for e in extra for o in objs)  # new geometry
+    for o in extra:
+        assert 0.06 - 1e-9 <= o.extents.max() <= 0.13 and o.extents.min() >= 0.02 - 1e-9, o.name
+    (mug,) = load_objects("mug_07")
+    assert mug.split == "train-extra"
+    # Their stable poses and symmetries ship: an empty cache directory is never written to.
+    from sim.goals import stable_poses
+    from sim.symmetry import symmetries
+
+    monkeypatch.setenv("HYDO_CACHE", str(tmp_path))
+    for o in extra:
+        assert stable_poses(o).shape == (100, 5) and symmetries(o).shape[1:] == (4, 4)
+    assert not any(tmp_path.iterdir())
+
+
 def test_cube_and_single_names(objs):
     (cube,) = load_objects("cube")
     assert cube.name == "cube"
