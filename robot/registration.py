@@ -20,7 +20,9 @@ current object cloud onto the goal cloud (``goal.npz``, recorded by ``hydo deplo
    approximate fallback;
 4. ambiguity: the ICP starts are distinct rotations (at least ``DISTINCT_START_DEG`` apart); every
    solution that fits about as well as the best (trimmed RMS within ``AMBIGUOUS_RMS`` × best +
-   ``AMBIGUOUS_SLACK_M``) is a candidate; the nearest candidate (least motion) is the registration,
+   ``AMBIGUOUS_SLACK_M``) and agrees with the goal cloud about as closely (the two-way share of
+   points within ``AGREE_M`` of the other cloud, within ``AGREE_TOL`` of the best: a bottle turned end
+   over end fits within the RMS band but not this) is a candidate; the nearest candidate (least motion) is the registration,
    and those moving the object differently from it (mean over the points by more than
    ``AMBIGUOUS_DISTINCT_M``) are kept as alternatives: a symmetric or nearly symmetric object (a
    box turned 180°, a mug whose handle is hidden) matches its goal cloud in more than one pose, and
@@ -66,6 +68,8 @@ DISTINCT_START_DEG = 25.0  # ... at least this far apart (so that distinct solut
 AMBIGUOUS_RMS = 1.25
 AMBIGUOUS_SLACK_M = 0.0005
 AMBIGUOUS_DISTINCT_M = 0.015
+AGREE_M = 0.005  # two-way agreement of a candidate fit: points with a counterpart this close ...
+AGREE_TOL = 0.03  # ... and the candidates kept: within this of the best fit's agreement
 COVERAGE_MIN = 0.92  # of the goal cloud within INLIER_M of the registered current cloud: the views agree
 COVERAGE_POINTS = 500
 GOAL_FORMAT = "hydo-goal/1"
@@ -247,6 +251,13 @@ def register(
     # poses the clouds cannot tell apart, the flow points to the one needing the least motion (for a
     # planar goal, which keeps the object's yaw, that is the goal itself for a symmetric object).
     fits = [(transform_points(T, source), T) for rms, T in solutions if rms <= band]
+    probe = _subsample(tgt, COVERAGE_POINTS, rng)
+    if len(fits) > 1:
+        # The trimmed RMS cannot tell a nearly symmetric object's wrong fit (a bottle turned end over
+        # end: its ends differ by a few mm) from the right one, and the wrong one often moves less.
+        # Close agreement both ways can: keep the fits within AGREE_TOL of the best agreement.
+        agree = [_agreement(m, tree, probe, target, cameras) for m, _ in fits]
+        fits = [f for f, a in zip(fits, agree) if a >= max(agree) - AGREE_TOL]
     fits.sort(key=lambda f: np.linalg.norm(f[0] - source, axis=1).mean())
     moved, best_T = fits[0]
     d_all, _ = tree.query(moved)
@@ -262,11 +273,23 @@ def register(
         ):
             alternatives.append(other)
     alt = tuple(float(np.linalg.norm(m - source, axis=1).mean()) for m in alternatives)
-    probe = _subsample(tgt, COVERAGE_POINTS, rng)
     coverage = float((cKDTree(moved).query(probe)[0] < INLIER_M).mean())
     return Registration(
         best_T, rmse, inlier_fraction, distance, time.perf_counter() - t0, alt, coverage, float(seen.mean())
     )
+
+
+def _agreement(
+    moved: np.ndarray, tree: cKDTree, probe: np.ndarray, target: np.ndarray, cameras: Sequence
+) -> float:
+    """How closely a fit's moved current cloud ``moved (M, 3)`` and the goal cloud agree, both ways:
+    the mean of the share of the moved points the goal can show (:func:`goal_visible`) that have a
+    goal point (``tree``) within ``AGREE_M``, and the share of goal points ``probe (P, 3)`` with a
+    moved point within ``AGREE_M``. Equal for the poses of a symmetry; lower for a near miss."""
+    seen = goal_visible(moved, target, cameras) if len(cameras) else np.ones(len(moved), bool)
+    near = tree.query(moved[seen])[0] < AGREE_M if seen.any() else np.zeros(1, bool)
+    covered = cKDTree(moved).query(probe)[0] < AGREE_M
+    return 0.5 * (float(near.mean()) + float(covered.mean()))
 
 
 def goal_visible(points: np.ndarray, goal: np.ndarray, cameras: Sequence) -> np.ndarray:
