@@ -257,7 +257,7 @@ def register(
         # end: its ends differ by a few mm) from the right one, and the wrong one often moves less.
         # Close agreement both ways can: keep the fits within AGREE_TOL of the best agreement.
         agree = [_agreement(m, tree, probe, target, cameras) for m, _ in fits]
-        fits = [f for f, a in zip(fits, agree) if a >= max(agree) - AGREE_TOL]
+        fits = [f for f, a in zip(fits, agree, strict=True) if a >= max(agree) - AGREE_TOL]
     fits.sort(key=lambda f: np.linalg.norm(f[0] - source, axis=1).mean())
     moved, best_T = fits[0]
     d_all, _ = tree.query(moved)

@@ -121,9 +121,7 @@ def test_too_little_shared_surface_is_refused_in_one_line(twin):
         check_registration(reg, p.registration_max_rmse, p.registration_min_inliers, min_overlap=0.95)
 
 
-def test_a_nearly_symmetric_object_takes_the_fit_that_agrees_not_the_one_that_moves_least(
-    twin, monkeypatch
-):
+def test_a_nearly_symmetric_object_takes_the_fit_that_agrees_not_the_one_that_moves_least(twin, monkeypatch):
     """Episode 66 (bottle_01, a flip): the bottle turned end over end fits the goal cloud within the
     RMS band (its two ends differ by a few mm) and needs less motion, so least motion alone picks it
     and the distance to the goal comes out ~2 cm short. The two-way agreement at 5 mm tells the two
