@@ -20,16 +20,17 @@ current object cloud onto the goal cloud (``goal.npz``, recorded by ``hydo deplo
    approximate fallback;
 4. ambiguity: the ICP starts are distinct rotations (at least ``DISTINCT_START_DEG`` apart); every
    solution that fits about as well as the best (trimmed RMS within ``AMBIGUOUS_RMS`` × best +
-   ``AMBIGUOUS_SLACK_M``) and agrees with the goal cloud about as closely (the two-way share of
-   points within ``AGREE_M`` of the other cloud, within ``AGREE_TOL`` of the best: a bottle turned end
-   over end fits within the RMS band but not this) is a candidate; the nearest candidate (least motion) is the registration,
-   and those moving the object differently from it (mean over the points by more than
-   ``AMBIGUOUS_DISTINCT_M``) are kept as alternatives: a symmetric or nearly symmetric object (a
-   box turned 180°, a mug whose handle is hidden) matches its goal cloud in more than one pose, and
-   the clouds alone cannot say which one the goal meant. Goals are reached up to the object's
-   symmetry (``sim.contract``), so that only matters when the views differ: :meth:`Registration.verdict`
-   calls ``ambiguous`` a registration within the threshold whose alternatives are not, when the goal
-   cloud shows surface the current cloud lacks (``goal_coverage`` under ``COVERAGE_MIN``).
+   ``AMBIGUOUS_SLACK_M``) is a candidate. The registration is the nearest (least motion) of the
+   candidates that agree with the goal cloud about as closely as the best (the two-way share of
+   points within ``AGREE_M`` of the other cloud, within ``AGREE_TOL`` of the best: a bottle turned
+   end over end fits within the RMS band but not this). The candidates moving the object
+   differently from it (mean over the points by more than ``AMBIGUOUS_DISTINCT_M``) are kept as
+   alternatives: a symmetric or nearly symmetric object (a box turned 180°, a mug whose handle is
+   hidden) matches its goal cloud in more than one pose, and the clouds alone cannot say which one
+   the goal meant. Goals are reached up to the object's symmetry (``sim.contract``), so that only
+   matters when the views differ: :meth:`Registration.verdict` calls ``ambiguous`` a registration
+   whose alternatives fall on the other side of the threshold, when the goal cloud shows surface
+   the current cloud lacks (``goal_coverage`` under ``COVERAGE_MIN``).
 
 The measured distance to the goal is ``mean ‖T p − p‖`` over the current object points: the reward's
 quantity, so success is the same 3 cm threshold as in training. Symmetric objects fit their goal
@@ -100,17 +101,19 @@ class Registration:
         return bool(self.alternatives)
 
     def verdict(self, threshold: float, margin: float = 0.0) -> str:
-        """``failure`` when the nearest equally good fit is ``threshold`` or further; ``success`` when it
-        is nearer and either no other fit disagrees or the goal cloud is covered (``COVERAGE_MIN``:
-        both views show the same surface, so the fits that disagree are the object's own symmetry,
-        and goals are reached up to symmetry, ``sim.contract``); else ``ambiguous``: the current view
-        lacks surface the goal view shows, and the fits disagree on whether it is at the goal;
-        ``uncertain`` within ``margin`` under the threshold (the registration's own distance error)."""
+        """``failure`` when the registration is ``threshold`` or further and either no other equally
+        good fit is nearer or the goal cloud is covered (``COVERAGE_MIN``: both views show the same
+        surface, so the fits that disagree are the object's own symmetry, and goals are reached up
+        to symmetry, ``sim.contract``); ``success`` when it is nearer and either no other fit is
+        further or the goal cloud is covered; else ``ambiguous``: the current view lacks surface the
+        goal view shows, and the fits disagree on whether it is at the goal; ``uncertain`` within
+        ``margin`` under the threshold (the registration's own distance error)."""
+        covered = self.goal_coverage >= COVERAGE_MIN
         if self.distance >= threshold:
-            return "failure"
+            return "failure" if covered or all(a >= threshold for a in self.alternatives) else "ambiguous"
         if self.distance >= threshold - margin:
             return "uncertain"
-        if self.goal_coverage >= COVERAGE_MIN or all(a < threshold for a in self.alternatives):
+        if covered or all(a < threshold for a in self.alternatives):
             return "success"
         return "ambiguous"
 
@@ -252,14 +255,17 @@ def register(
     # planar goal, which keeps the object's yaw, that is the goal itself for a symmetric object).
     fits = [(transform_points(T, source), T) for rms, T in solutions if rms <= band]
     probe = _subsample(tgt, COVERAGE_POINTS, rng)
+    fits.sort(key=lambda f: np.linalg.norm(f[0] - source, axis=1).mean())
+    agreeing = fits
     if len(fits) > 1:
         # The trimmed RMS cannot tell a nearly symmetric object's wrong fit (a bottle turned end over
         # end: its ends differ by a few mm) from the right one, and the wrong one often moves less.
-        # Close agreement both ways can: keep the fits within AGREE_TOL of the best agreement.
+        # Close agreement both ways can: the registration is the nearest of the fits within
+        # AGREE_TOL of the best agreement. The others stay alternatives: with partial views a fit
+        # that has not quite settled loses agreement too, so they are not ruled out (verdict).
         agree = [_agreement(m, tree, probe, target, cameras) for m, _ in fits]
-        fits = [f for f, a in zip(fits, agree, strict=True) if a >= max(agree) - AGREE_TOL]
-    fits.sort(key=lambda f: np.linalg.norm(f[0] - source, axis=1).mean())
-    moved, best_T = fits[0]
+        agreeing = [f for f, a in zip(fits, agree, strict=True) if a >= max(agree) - AGREE_TOL]
+    moved, best_T = agreeing[0]
     d_all, _ = tree.query(moved)
     inl = d_all < INLIER_M
     rmse = float(np.sqrt(np.mean(d_all[inl] ** 2))) if inl.any() else np.inf
@@ -267,7 +273,7 @@ def register(
     inlier_fraction = float(inl[seen].mean()) if seen.any() else 0.0
     distance = float(np.linalg.norm(moved - source, axis=1).mean())
     alternatives: list[np.ndarray] = []  # the distinct other ones
-    for other, _ in fits[1:]:
+    for other, _ in fits:
         if all(
             np.linalg.norm(other - m, axis=1).mean() > AMBIGUOUS_DISTINCT_M for m in (moved, *alternatives)
         ):

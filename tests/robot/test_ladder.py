@@ -63,9 +63,11 @@ def test_registration_verdict_up_to_symmetry_and_ambiguous_when_the_views_differ
             (0.01, (0.05,), 0.95),
             (0.01, (0.05,), 0.8),
             (0.05, (0.06,), 0.95),
+            (0.05, (0.01,), 0.95),  # the nearer fit is the object's own symmetry: a failure
+            (0.05, (0.01,), 0.8),  # a nearer fit the current view cannot rule out
         )
     ]
-    assert verdict == ["success", "success", "ambiguous", "failure"]
+    assert verdict == ["success", "success", "ambiguous", "failure", "failure", "ambiguous"]
     # within the success margin under the threshold: not yet a success
     assert Registration(np.eye(4), 0.001, 1.0, 0.027, 0.0).verdict(SUCCESS_THRESHOLD_M, 0.005) == "uncertain"
 
