@@ -408,8 +408,8 @@ class Deployment:
                     self.cell.perception.registration_min_overlap,
                 )
                 last_distance = reg.distance
-                # "ambiguous": the nearest fit is within 3 cm, an equally good one is not, and the goal
-                # shows surface the current view lacks: the episode ends, reported as ambiguous
+                # "ambiguous": equally good fits fall on both sides of 3 cm and the goal shows
+                # surface the current view lacks: the episode ends, reported as ambiguous
                 # "uncertain": under 3 cm by less than the cell's success margin (none for the twin's
                 # true-pose perception): not yet claimed, the policy acts again; if the step limit
                 # comes first, reported as ambiguous
