@@ -42,6 +42,7 @@ import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 from hydo_cli.report import FLIP_TILT_DEG  # noqa: E402
+from robot import registration  # noqa: E402
 from robot.cell import load_cell  # noqa: E402
 from robot.connect import open_cameras  # noqa: E402
 from robot.errors import RegistrationError  # noqa: E402
@@ -152,9 +153,17 @@ def main() -> None:
     ap.add_argument("--objects", default="train", help="object set (as `hydo eval --objects`)")
     ap.add_argument("--cell", type=Path, default=None, help="cell YAML (default: the twin's example cell)")
     ap.add_argument("--json", type=Path, help="write results to this JSON file")
+    ap.add_argument(
+        "--agree-tol",
+        type=float,
+        default=None,
+        help="override robot.registration.AGREE_TOL (the agreement band the registration is picked in)",
+    )
     args = ap.parse_args()
 
     t_start = time.time()
+    if args.agree_tol is not None:
+        registration.AGREE_TOL = args.agree_tol  # read by register() at each call
     cell = load_cell(args.cell)
     assets = load_objects(args.objects)
     world = TwinWorld(cell, seed=args.seed)
