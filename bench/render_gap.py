@@ -10,6 +10,8 @@ episodes (``hydo eval --seed``'s):
 - ``mesh``: the training observation (the samples the cameras see, by a z-buffer);
 - ``mesh-seen``: mesh samples, only those within ``SEEN_M`` of a rendered point (the surface the
   cameras see), exact normals: the rendered *coverage* with the training's geometry;
+- ``mesh-pca``: the training observation's samples with PCA normals (``sim.depth.estimate_normals``,
+  the deploy path's estimator, turned to the outward side): the deploy *normal estimator* alone;
 - ``render-mesh-normals``: the rendered points, each with the exact normal of the nearest mesh
   sample: the rendered points with the training's *normals*;
 - ``render``: the deploy path's observation.
@@ -47,9 +49,10 @@ from hydo_cli.policies import load_policy  # noqa: E402
 from hydo_cli.report import goal_kind_breakdown  # noqa: E402
 from hydo_cli.rollout import run_episodes, summarize  # noqa: E402
 from sim.atomic import atomic_write_text  # noqa: E402
+from sim.depth import NORMAL_K, estimate_normals  # noqa: E402
 from sim.observe import MeshObserver  # noqa: E402
 
-VARIANTS = ("mesh-all", "mesh", "mesh-seen", "render-mesh-normals", "render")
+VARIANTS = ("mesh-all", "mesh", "mesh-seen", "mesh-pca", "render-mesh-normals", "render")
 SEEN_M = 0.005  # a mesh sample this close to a rendered point is on the surface the cameras see
 
 
@@ -63,6 +66,10 @@ class HybridObserver:
     def segmented_clouds(self, scene):
         r_p, r_n, r_bg = self.render.segmented_clouds(scene)
         m_p, m_n, m_bg = self.mesh.segmented_clouds(scene)
+        if self.variant == "mesh-pca":
+            n = estimate_normals(m_p, NORMAL_K)
+            n[(n * m_n).sum(axis=1) < 0] *= -1  # deploy turns them towards the camera: the outward side
+            return m_p, n, m_bg
         if self.variant == "mesh-seen":
             d, _ = cKDTree(r_p).query(m_p)
             keep = d < SEEN_M
