@@ -9,12 +9,18 @@ cloud, as ``hydo deploy capture-goal`` records it), then captured at two more po
 - ``start``: the episode's start pose. On 6D goals about half need a flip, so the two views often
   show different faces: the case that makes view-to-view registration hard;
 - ``near``: the goal pose moved by 1–4 cm and turned up to 20° about the vertical: where the loop
-  decides success, so the registration's distance must agree with the true one about 3 cm.
+  decides success, so the registration's distance must agree with the true one about 3 cm;
+- ``turned``: the goal pose moved by up to 1 cm and turned 60–180° about the vertical: the body in
+  place, a mug's handle or a box's long side elsewhere. Up to the object's symmetry that is the goal
+  (a cylinder, a bowl) or 3 cm and more from it (a mug): the case behind the twin's false successes.
 
 For each: refused or not (the cell's ``registration_max_rmse`` / ``registration_min_inliers`` /
 ``registration_min_overlap``), the inlier fraction and the overlap the registration implies, ADD-S
 of the estimated transform against the true one, and (``near``) whether the 3 cm verdict agrees
-with the truth. Printed as a table, per ``move`` / ``flip`` (goal tilt ≥ 30°) and per object.
+with the truth. The deploy loop's verdict (``Registration.verdict`` with the cell's success margin) is counted
+against the truth: ``false_success`` (it says success, the truth is 3 cm or more), ``false_failure``,
+``undecided`` (ambiguous or uncertain). Printed as a table, per ``move`` / ``flip`` (goal tilt ≥ 30°)
+and per object.
 
 Usage::
 
@@ -58,6 +64,9 @@ from sim.objects import load_objects  # noqa: E402
 SUCCESS_M = 0.03
 NEAR_SHIFT_M = (0.01, 0.04)
 NEAR_YAW_DEG = 20.0
+TURNED_SHIFT_M = 0.01
+TURNED_YAW_DEG = (60.0, 180.0)
+CASES = ("start", "near", "turned")
 
 
 def _tilt_deg(T_from: np.ndarray, T_to: np.ndarray) -> float:
@@ -108,11 +117,13 @@ def measure(cell, world, cams, background, T_goal, goal_points, mode, seed, rng)
         "inliers_true_T_all_points": inliers_true_all,
         "inlier_fraction": reg.inlier_fraction,
         "overlap": reg.overlap,
+        "goal_coverage": reg.goal_coverage,
         "rmse_m": reg.rmse,
         "adds_m": registration_error(world, reg.T, T_goal),
         "distance_m": reg.distance,
         "true_distance_m": true_d,
         "verdict_agrees": (reg.distance < SUCCESS_M) == (true_d < SUCCESS_M),
+        "verdict": reg.verdict(SUCCESS_M, p.success_margin) if refused is None else "refused",
         "seconds": reg.seconds,
     }
 
@@ -139,6 +150,10 @@ def summarise(rows: list[dict]) -> dict:
         "adds_p90_mm": float(np.quantile(err, 0.9) * 1000),
         "adds_over_1cm": int((err > 0.01).sum()),
         "verdict_agrees": float(np.mean([r["verdict_agrees"] for r in ok])) if ok else None,
+        # the loop's verdict against the truth
+        "false_success": sum(r["verdict"] == "success" and r["true_distance_m"] >= SUCCESS_M for r in ok),
+        "false_failure": sum(r["verdict"] == "failure" and r["true_distance_m"] < SUCCESS_M for r in ok),
+        "undecided": sum(r["verdict"] in ("ambiguous", "uncertain") for r in ok),
         "distance_error_p90_mm": float(
             np.quantile([abs(r["distance_m"] - r["true_distance_m"]) for r in rows], 0.9) * 1000
         ),
@@ -192,20 +207,31 @@ def main() -> None:
             pos[:2] += shift
             world.place_object(pos, _quat_yaw(quat, np.deg2rad(rng.uniform(-NEAR_YAW_DEG, NEAR_YAW_DEG))))
             row["near"] = measure(cell, world, cams, background, T_goal, goal_points, args.goals, ep, rng)
+            # its own random stream, so that start and near see the same draws as before it was added
+            t_rng = np.random.default_rng([args.seed, ep, 7])
+            a = t_rng.uniform(0, 2 * np.pi)
+            pos = np.array(goal[0], float)
+            pos[:2] += t_rng.uniform(0, TURNED_SHIFT_M) * np.array([np.cos(a), np.sin(a)])
+            yaw = t_rng.choice((-1, 1)) * np.deg2rad(t_rng.uniform(*TURNED_YAW_DEG))
+            world.place_object(pos, _quat_yaw(quat, yaw))
+            row["turned"] = measure(cell, world, cams, background, T_goal, goal_points, args.goals, ep, t_rng)
             episodes.append(row)
     world.close()
 
     results: dict = {}
-    for case in ("start", "near"):
+    for case in CASES:
         results[case] = {"all": summarise([e[case] for e in episodes])}
         for kind in ("move", "flip"):
             results[case][kind] = summarise([e[case] for e in episodes if e["kind"] == kind])
     per_object: dict = {}
     for e in episodes:
         o = per_object.setdefault(e["object"], {"n": 0, "refused": 0, "adds_mm": []})
-        o["n"] += 2
-        o["refused"] += (e["start"]["refused"] is not None) + (e["near"]["refused"] is not None)
-        o["adds_mm"] += [e["start"]["adds_m"] * 1000, e["near"]["adds_m"] * 1000]
+        o["n"] += len(CASES)
+        o["refused"] += sum(e[c]["refused"] is not None for c in CASES)
+        o["adds_mm"] += [e[c]["adds_m"] * 1000 for c in CASES]
+        o["false_success"] = o.get("false_success", 0) + sum(
+            e[c]["verdict"] == "success" and e[c]["true_distance_m"] >= SUCCESS_M for c in CASES
+        )
     for o in per_object.values():
         o["adds_median_mm"] = float(np.median(o.pop("adds_mm")))
 
@@ -221,13 +247,14 @@ def main() -> None:
         "adds_over_1cm",
     )
     print(f"registration on the twin: {args.goals} goals, {args.episodes} episodes, seed {args.seed}")
-    print(f"{'case':<12}" + "".join(f"{c:>16}" for c in (*cols, "verdict_agrees")))
-    for case in ("start", "near"):
+    verdict_cols = ("verdict_agrees", "false_success", "false_failure", "undecided")
+    print(f"{'case':<12}" + "".join(f"{c:>16}" for c in (*cols, *verdict_cols)))
+    for case in CASES:
         for kind in ("all", "move", "flip"):
             s = results[case][kind]
             if not s:
                 continue
-            vals = [s[c] for c in cols] + [s["verdict_agrees"]]
+            vals = [s[c] for c in (*cols, *verdict_cols)]
             print(
                 f"{case + '/' + kind:<12}"
                 + "".join(f"{v:>16.3f}" if isinstance(v, float) else f"{v!s:>16}" for v in vals)
@@ -236,6 +263,8 @@ def main() -> None:
     print(
         "most refused objects: " + ", ".join(f"{k} {v['refused']}/{v['n']}" for k, v in worst if v["refused"])
     )
+    fs = sorted(per_object.items(), key=lambda kv: -kv[1]["false_success"])[:8]
+    print("false successes: " + ", ".join(f"{k} {v['false_success']}" for k, v in fs if v["false_success"]))
     wall = time.time() - t_start
     for kind in ("move", "flip"):
         t = results["start"][kind]
