@@ -411,8 +411,9 @@ class Deployment:
                 # "ambiguous": equally good fits fall on both sides of 3 cm and the goal shows
                 # surface the current view lacks: the episode ends, reported as ambiguous
                 # "uncertain": under 3 cm by less than the cell's success margin (none for the twin's
-                # true-pose perception): not yet claimed, the policy acts again; if the step limit
-                # comes first, reported as ambiguous
+                # true-pose perception), or the views match less closely than at the goal (a mug
+                # whose handle the fit put elsewhere): not yet claimed, the policy acts again; if the
+                # step limit comes first, reported as ambiguous
                 margin = 0.0 if cfg.perception == "true" else self.cell.perception.success_margin
                 last_verdict = reg.verdict(SUCCESS_THRESHOLD_M, margin)
                 if last_verdict in ("success", "ambiguous") or step == cfg.max_steps:

@@ -55,19 +55,33 @@ def test_registration_verdict_up_to_symmetry_and_ambiguous_when_the_views_differ
 
     reg = register(moved(shape, 0.015, 0.1) + rng.normal(0, 0.0005, shape.shape), shape, "planar")
     assert reg.verdict(SUCCESS_THRESHOLD_M) == "success" and not reg.ambiguous
-    # the verdict: (distance, alternatives, goal coverage)
+    # the verdict: (distance, alternatives, goal coverage, inlier fraction)
     verdict = [
-        Registration(np.eye(4), 0.001, 1.0, d, 0.0, alt, cov).verdict(SUCCESS_THRESHOLD_M)
-        for d, alt, cov in (
-            (0.01, (0.02,), 0.5),
-            (0.01, (0.05,), 0.95),
-            (0.01, (0.05,), 0.8),
-            (0.05, (0.06,), 0.95),
-            (0.05, (0.01,), 0.95),  # the nearer fit is the object's own symmetry: a failure
-            (0.05, (0.01,), 0.8),  # a nearer fit the current view cannot rule out
+        Registration(np.eye(4), 0.001, inl, d, 0.0, alt, cov).verdict(SUCCESS_THRESHOLD_M)
+        for d, alt, cov, inl in (
+            (0.01, (0.02,), 0.97, 1.0),
+            (0.01, (0.05,), 0.97, 1.0),
+            (0.01, (0.05,), 0.8, 1.0),
+            (0.05, (0.06,), 0.95, 1.0),
+            (0.05, (0.01,), 0.95, 1.0),  # the nearer fit is the object's own symmetry: a failure
+            (0.05, (0.01,), 0.8, 1.0),  # a nearer fit the current view cannot rule out
+            # under 3 cm, but the views match less closely than an object at its goal: not claimed
+            (0.01, (0.02,), 0.5, 1.0),
+            (0.01, (0.05,), 0.93, 1.0),  # covered enough to call the far fit a symmetry, not a success
+            (0.01, (), 1.0, 0.85),  # a tenth of the points the goal shows have no goal point near them
         )
     ]
-    assert verdict == ["success", "success", "ambiguous", "failure", "failure", "ambiguous"]
+    assert verdict == [
+        "success",
+        "success",
+        "ambiguous",
+        "failure",
+        "failure",
+        "ambiguous",
+        "uncertain",
+        "uncertain",
+        "uncertain",
+    ]
     # within the success margin under the threshold: not yet a success
     assert Registration(np.eye(4), 0.001, 1.0, 0.027, 0.0).verdict(SUCCESS_THRESHOLD_M, 0.005) == "uncertain"
 

@@ -1,0 +1,141 @@
+"""The deploy verdict against the twin's truth, re-decided from logged registrations.
+
+Every twin session (``hydo deploy --robot sim``, the ladder's ``twin`` rung) logs, per step, the
+registration (distance, goal coverage, inlier fraction, alternatives) and the true distance to the
+goal. This bench re-runs ``Registration.verdict`` of the current code on each logged registration
+(the cell's success margin, ``--margin``) and counts it against the truth (3 cm):
+
+- per verdict (success / uncertain / ambiguous / failure): how many registrations are truly within
+  3 cm and how many are not;
+- near the goal (registered distance under 3 cm minus the margin, where a success is claimed):
+  how many true and false ones fall under ``SUCCESS_COVERAGE_MIN`` / ``SUCCESS_INLIERS_MIN``, the
+  figures those constants rest on;
+- per episode, the step where the session stopped on a claim (success, or ambiguous: an ambiguous
+  registration or, at the step limit, an uncertain one) and what the current verdict says there.
+  A stop it turns ``uncertain`` before the step limit is one the loop would act on again; what
+  happens after it is not in the log, so only the stops themselves are counted.
+
+Usage::
+
+    python bench/verdict.py runs/ladder/*/twin --json runs/bench-verdict.json
+
+JSON: ``{"verdicts": {...}, "near_goal": {...}, "stops": {...}, "meta": {...}}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+from collections import Counter
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+
+from robot import registration  # noqa: E402
+from robot.cell import Perception  # noqa: E402
+from robot.registration import Registration  # noqa: E402
+from sim.atomic import atomic_write_text  # noqa: E402
+from sim.contract import SUCCESS_THRESHOLD_M  # noqa: E402
+
+
+def _registration(r: dict) -> Registration:
+    return Registration(
+        np.asarray(r["T"], float),
+        r["rmse_m"],
+        r["inlier_fraction"],
+        r["distance_m"],
+        r["seconds"],
+        tuple(r["alternative_distances_m"]),
+        r["goal_coverage"],
+        r["overlap"],
+    )
+
+
+def _events(path: Path) -> list[dict]:
+    log = path / "log.jsonl" if path.is_dir() else path
+    if not log.is_file():
+        raise SystemExit(f"{path}: no log.jsonl (a `hydo deploy --robot sim` session folder)")
+    return [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("sessions", nargs="+", type=Path, help="twin session folders (or their log.jsonl)")
+    ap.add_argument("--margin", type=float, default=Perception().success_margin, help="success margin (m)")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+
+    thr = SUCCESS_THRESHOLD_M
+    verdicts: Counter = Counter()  # (verdict, truly within 3 cm)
+    near = {"true": [], "false": []}  # (coverage, inliers) of registrations under thr - margin
+    stops: Counter = Counter()
+    for session in args.sessions:
+        obs: dict[int, list[dict]] = {}
+        ends: dict[int, dict] = {}
+        for e in _events(session):
+            if e.get("event") == "observation" and e.get("true_distance_m") is not None:
+                obs.setdefault(e["episode"], []).append(e)
+            elif e.get("event") == "episode_end":
+                ends[e["episode"]] = e
+        for ep, steps in obs.items():
+            for o in steps:
+                reg = _registration(o["registration"])
+                truth = o["true_distance_m"] < thr
+                verdicts[(reg.verdict(thr, args.margin), truth)] += 1
+                if reg.distance < thr - args.margin:
+                    near["true" if truth else "false"].append((reg.goal_coverage, reg.inlier_fraction))
+            end = ends.get(ep)
+            if end is not None and end.get("cause") in ("success", "ambiguous"):
+                last = steps[-1]
+                now = _registration(last["registration"]).verdict(thr, args.margin)
+                truth = "true" if last["true_distance_m"] < thr else "false"
+                stops[f"{end['cause']} ({truth}) -> {now}"] += 1
+
+    def under(rows, cov, inl):
+        return {
+            "n": len(rows),
+            "coverage_under": sum(c < cov for c, _ in rows),
+            "inliers_under": sum(i < inl for _, i in rows),
+            "either_under": sum(c < cov or i < inl for c, i in rows),
+        }
+
+    cov_min, inl_min = registration.SUCCESS_COVERAGE_MIN, registration.SUCCESS_INLIERS_MIN
+    results = {
+        "verdicts": {
+            v: {"within_3cm": verdicts[(v, True)], "not_within_3cm": verdicts[(v, False)]}
+            for v in ("success", "uncertain", "ambiguous", "failure")
+        },
+        "near_goal": {
+            "success_coverage_min": cov_min,
+            "success_inliers_min": inl_min,
+            "truly_within_3cm": under(near["true"], cov_min, inl_min),
+            "not_within_3cm": under(near["false"], cov_min, inl_min),
+        },
+        "stops": dict(sorted(stops.items())),
+    }
+    print(f"verdict vs truth, {len(args.sessions)} session(s), margin {args.margin * 1000:.1f} mm")
+    print(f"{'verdict':<12}{'within 3 cm':>14}{'not within':>14}")
+    for v, c in results["verdicts"].items():
+        print(f"{v:<12}{c['within_3cm']:>14}{c['not_within_3cm']:>14}")
+    print(
+        f"registered under {(thr - args.margin) * 100:.1f} cm: under coverage {cov_min} / inliers {inl_min} / either"
+    )
+    for k in ("truly_within_3cm", "not_within_3cm"):
+        u = results["near_goal"][k]
+        print(
+            f"  {k:<18} {u['coverage_under']:>4} / {u['inliers_under']:>4} / {u['either_under']:>4} of {u['n']}"
+        )
+    for k, n in results["stops"].items():
+        print(f"stop: {k}: {n}")
+    if args.json:
+        meta = {"command": " ".join(sys.argv), "python": platform.python_version()}
+        atomic_write_text(args.json, json.dumps({**results, "meta": meta}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
