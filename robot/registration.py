@@ -73,9 +73,10 @@ AGREE_M = 0.005  # two-way agreement of a candidate fit: points with a counterpa
 AGREE_TOL = 0.03  # ... and the candidates kept: within this of the best fit's agreement
 COVERAGE_MIN = 0.92  # of the goal cloud within INLIER_M of the registered current cloud: the views agree
 # A success is claimed only where the two views match as an object at its goal makes them match:
-# this much of the goal cloud covered and of the current points the goal shows inliers (the twin's
-# true successes near 3 cm: coverage under 0.95 in 5 of 196 registrations, its false successes in
-# 18 of 23; inliers under 0.9 in 1 of 196 and 6 of 23: `hydo deploy ladder` logs, docs/results.md)
+# this much of the goal cloud covered and of the current points the goal shows inliers. Of the
+# twin's registrations under 2.5 cm, coverage is under 0.95 in 5 of 196 truly within 3 cm and 18 of
+# 23 not; inliers under 0.9 in 1 of 196 and 6 of 23 (`python bench/verdict.py` on three ladder
+# sessions' twin logs, docs/results.md)
 SUCCESS_COVERAGE_MIN = 0.95
 SUCCESS_INLIERS_MIN = 0.9
 COVERAGE_POINTS = 500
