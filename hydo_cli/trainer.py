@@ -446,6 +446,9 @@ class Trainer:
                     # 2. step every env; store real next observations (truncation still bootstraps)
                     rows: list[Transition] = []
                     for k, (env, action) in enumerate(zip(self.envs, actions, strict=True)):
+                        # the pose each observation's goal flow points to (the nearest that looks
+                        # like the goal: it can change with the object's pose) for hindsight goals
+                        flow_goal_T = env.T_goal_eff.copy()
                         next_obs, reward, terminated, truncated, info = env.step(action)
                         rows.append(
                             Transition(
@@ -458,10 +461,11 @@ class Trainer:
                                 next_features=next_obs["features"],
                                 terminated=terminated,
                                 truncated=truncated,
-                                goal_T=pose_matrix(info["goal_pose"][:3], info["goal_pose"][3:]),
+                                goal_T=flow_goal_T,
                                 achieved_T=pose_matrix(info["object_pose"][:3], info["object_pose"][3:]),
                                 normals=obs[k]["normals"],
                                 next_normals=next_obs["normals"],
+                                next_goal_T=env.T_goal_eff.copy(),
                             )
                         )
                         ep_return[k] += reward

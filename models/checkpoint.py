@@ -156,7 +156,7 @@ def apply_replay_segment(buffer, path: str | os.PathLike) -> None:
     and apply it; a damaged or foreign one raises :class:`CheckpointError`, one line naming the file."""
     import ast
 
-    from models.replay import SEGMENT_ARRAYS
+    from models.replay import SEGMENT_ARRAYS, SEGMENT_OPTIONAL
 
     path = Path(path)
 
@@ -181,7 +181,9 @@ def apply_replay_segment(buffer, path: str | os.PathLike) -> None:
         raise bad(f"`next_slot` must be {capacity} slots or -1")
     if links.size and links.max() >= capacity:
         raise bad(f"`next_slot` must lie in [-1, {capacity})")
-    _check_layout(arrays, SEGMENT_ARRAYS[5:], len(slots), buffer.n_obj, buffer.n_bg, bad)
+    _check_layout(
+        arrays, (*SEGMENT_ARRAYS[5:], *SEGMENT_OPTIONAL), len(slots), buffer.n_obj, buffer.n_bg, bad
+    )
     try:
         ast.literal_eval(bytes(arrays["rng"]).decode())
         buffer.apply_segment(arrays)

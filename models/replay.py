@@ -14,12 +14,16 @@ with flow ``φ`` sits at ``q = p + φ`` in the old goal pose ``G``, so for a new
 
     φ' = G' · G⁻¹ · q − p          (object points; background flow stays 0)
 
-and the reward and success are recomputed from ``φ'`` of the next observation. Every transition then
-also teaches the critic what its push actually did, near the goal as much as far from it.
+and the reward and success are recomputed from ``φ'`` of the next observation. ``G`` is the pose the
+observation's flow points to, stored per observation: for a symmetric object the env points the
+flow to the nearest pose that looks like the goal, which may differ between an observation and the
+next (the relabelled goal ``G'`` is the exact pose reached, one of the poses that look like it).
+Every transition then also teaches the critic what its push actually did, near the goal as much as
+far from it.
 
 Memory (N = N_obj + N_bg points): two clouds of ``N × (3 + 4)`` float16 and their object normals
-``N_obj × 3`` float16 per transition, plus the two poses (3 × 4 float32 each) and an episode link,
-i.e. ``28·N + 12·N_obj + 127`` bytes; 128 + 128 points → 8.8 kB, 200k transitions → 1.6 GiB.
+``N_obj × 3`` float16 per transition, plus the three poses (3 × 4 float32 each) and an episode link,
+i.e. ``28·N + 12·N_obj + 171`` bytes; 128 + 128 points → 8.9 kB, 200k transitions → 1.65 GiB.
 
 Resume: :meth:`save` / :meth:`load` write the filled part and the sampling RNG state to one ``.npz``
 (atomically), so a resumed run samples exactly what it would have sampled. A full shard is ~0.9 GB
@@ -68,8 +72,11 @@ class Transition(NamedTuple):
     observation even when the episode was truncated (the bootstrap needs it). ``normals`` /
     ``next_normals`` ``(E, N_obj, 3)``: the object points' normals of both (stored as zeros when not
     given; an encoder with ``encoder_normals`` needs them). For hindsight relabelling also give
-    ``goal_T (E, 4, 4)``, the goal pose in force (fixed over an episode), and ``achieved_T (E, 4, 4)``,
-    the object pose after the primitive (world transforms).
+    ``goal_T (E, 4, 4)``, the goal pose the observation's flow points to, and ``achieved_T (E, 4, 4)``,
+    the object pose after the primitive (world transforms); and ``next_goal_T (E, 4, 4)``, the goal
+    of the next observation's flow, where it may differ: the env points the flow to the nearest
+    pose that looks like the goal (``sim.env``'s symmetric goals), which can change with the object's
+    pose. Without it the next observation's goal is ``goal_T``.
     """
 
     points: np.ndarray  # (E, N, 3) metres, world frame, object points first
@@ -85,6 +92,7 @@ class Transition(NamedTuple):
     achieved_T: np.ndarray | None = None  # (E, 4, 4)
     normals: np.ndarray | None = None  # (E, N_obj, 3)
     next_normals: np.ndarray | None = None  # (E, N_obj, 3)
+    next_goal_T: np.ndarray | None = None  # (E, 4, 4); None: goal_T
 
 
 def _available_memory_bytes() -> int | None:
@@ -96,7 +104,7 @@ def _available_memory_bytes() -> int | None:
 
 #: Arrays ``ReplayBuffer.save`` writes beside ``meta`` and ``rng``; the first nine are in every
 #: replay.npz, the normal and pose arrays only in those written since they were added (older replays
-#: load with them zero).
+#: load with them zero; a zero ``next_goal_T`` reads as ``goal_T``).
 SAVED_ARRAYS = (
     "points",
     "features",
@@ -112,13 +120,23 @@ SAVED_ARRAYS = (
     "goal_T",
     "achieved_T",
     "has_poses",
+    "next_goal_T",
     "next_slot",
 )
 REQUIRED_ARRAYS = ("meta", "rng", *SAVED_ARRAYS[:9])
 #: A segment (:meth:`ReplayBuffer.save_segment`) holds ``slots`` and every saved array at those
 #: slots, except ``next_slot``, which it holds whole (a new transition links the episode's previous
-#: one, which may sit in an older segment).
-SEGMENT_ARRAYS = ("meta", "rng", "slots", "streams", "next_slot", *SAVED_ARRAYS[:-1])
+#: one, which may sit in an older segment). ``next_goal_T`` came later: segments written before it
+#: lack it (those slots read it as ``goal_T``).
+SEGMENT_OPTIONAL = ("next_goal_T",)
+SEGMENT_ARRAYS = (
+    "meta",
+    "rng",
+    "slots",
+    "streams",
+    "next_slot",
+    *(k for k in SAVED_ARRAYS[:-1] if k not in SEGMENT_OPTIONAL),
+)
 
 
 class ReplayBuffer:
@@ -176,6 +194,7 @@ class ReplayBuffer:
         # primitive (rows 0-2 of the world transforms), and the slot of the episode's next transition
         self.goal_T = np.zeros((c, 3, 4), dtype=np.float32)
         self.achieved_T = np.zeros((c, 3, 4), dtype=np.float32)
+        self.next_goal_T = np.zeros((c, 3, 4), dtype=np.float32)  # all zero: the same as goal_T
         self.has_poses = np.zeros((c,), dtype=np.bool_)
         self.next_slot = np.full((c,), -1, dtype=np.int32)
         self._last_slot: dict[int, int] = {}  # stream (env) id → its latest slot, while its episode runs
@@ -187,7 +206,7 @@ class ReplayBuffer:
         """Bytes one stored transition occupies (both clouds and their normals float16, action,
         reward, flags, relabelling poses)."""
         cloud = self.n_points * (3 + FEATURE_DIM) * 2 + self.n_obj * 3 * 2  # float16
-        poses = 2 * 12 * 4 + 1 + 4  # goal_T, achieved_T, has_poses, next_slot
+        poses = 3 * 12 * 4 + 1 + 4  # goal_T, achieved_T, next_goal_T, has_poses, next_slot
         return 2 * cloud + 4 + 3 * 4 + 4 + 1 + 1 + poses
 
     @property
@@ -206,7 +225,7 @@ class ReplayBuffer:
         truncated), so add every env's transition in the same order at each step.
         """
         (points, features, index, motion, reward, next_points, next_features, terminated, truncated,
-         goal_T, achieved_T, normals, next_normals) = transition  # fmt: skip
+         goal_T, achieved_T, normals, next_normals, next_goal_T) = transition  # fmt: skip
         points = np.asarray(points)
         single = points.ndim == 2
         cols = [points, features, index, motion, reward, next_points, next_features, terminated, truncated]
@@ -252,6 +271,9 @@ class ReplayBuffer:
         else:
             goal_T, achieved_T = (np.asarray(x).reshape(e, 4, 4)[:, :3] for x in (goal_T, achieved_T))
             self.goal_T[slots], self.achieved_T[slots] = goal_T, achieved_T
+            self.next_goal_T[slots] = (
+                0.0 if next_goal_T is None else np.asarray(next_goal_T).reshape(e, 4, 4)[:, :3]
+            )
             self.has_poses[slots] = True
             ended = cols[7] | cols[8]
             for k, slot in enumerate(slots.tolist()):
@@ -403,9 +425,16 @@ class ReplayBuffer:
         old_goal = np.zeros_like(new_goal)
         old_goal[:, :3] = self.goal_T[slots]
         old_goal[:, 3, 3] = 1.0
-        rel = new_goal @ np.linalg.inv(old_goal)  # (S, 4, 4): old goal pose → new goal pose
+        next_goal = old_goal.copy()  # the next observation's flow may point to another symmetric pose
+        stored = self.next_goal_T[slots]
+        given = np.any(stored != 0.0, axis=(1, 2))
+        next_goal[given, :3] = stored[given]
         n = self.n_obj
-        for pts, feat in (("points", "features"), ("next_points", "next_features")):
+        for (pts, feat), goal in (
+            (("points", "features"), old_goal),
+            (("next_points", "next_features"), next_goal),
+        ):
+            rel = new_goal @ np.linalg.inv(goal)  # (S, 4, 4): the flow's goal pose → the new goal pose
             p = cols[pts][rows, :n].astype(np.float64)  # (S, n_obj, 3)
             q = p + cols[feat][rows, :n, 1:]  # where each point sits in the old goal pose
             moved = q @ rel[:, :3, :3].transpose(0, 2, 1) + rel[:, None, :3, 3]

@@ -64,9 +64,9 @@ def test_fifo_wraps_around():
 
 def test_bytes_per_transition_and_capacity_estimate():
     buf = ReplayBuffer(3, 128, 128)
-    # two float16 clouds with their object normals + action, reward, flags + the two relabelling
-    # poses and the episode link
-    assert buf.bytes_per_transition == 2 * (256 * 7 + 128 * 3) * 2 + 4 + 12 + 4 + 2 + 2 * 48 + 1 + 4
+    # two float16 clouds with their object normals + action, reward, flags + the three relabelling
+    # poses (the two observations' flow goals and the pose reached) and the episode link
+    assert buf.bytes_per_transition == 2 * (256 * 7 + 128 * 3) * 2 + 4 + 12 + 4 + 2 + 3 * 48 + 1 + 4
     allocated = sum(getattr(buf, k).nbytes for k in ReplayBuffer._ARRAYS)
     assert allocated == 3 * buf.bytes_per_transition
     assert 200_000 * buf.bytes_per_transition < 1.7 * 2**30  # 200k transitions at N=256: ~1.6 GiB
@@ -108,42 +108,49 @@ def _pose(rng, planar=True):
     return T
 
 
-def _episode(rng, local, n_steps, goal, n_bg=4, success_at=None):
+def _episode(rng, local, n_steps, goal, n_bg=4, success_at=None, symmetric=False):
     """An episode's transitions for a rigid object with surface points ``local (n_obj, 3)``: the
-    observation at pose T has points T·local and flows from ``sim.contract.goal_flow``."""
+    observation at pose T has points T·local and flows from ``sim.contract.goal_flow``.
+    ``symmetric``: as the env does for a symmetric object, the flow of every other observation
+    points to the goal turned 180° about its vertical axis (each transition says which, in
+    ``goal_T`` / ``next_goal_T``)."""
     from sim.contract import goal_flow, transform_points
 
     poses = [_pose(rng) for _ in range(n_steps + 1)]
     if success_at is not None:
         poses[success_at + 1] = goal.copy()
     bg = rng.uniform(-0.2, 0.2, (n_bg, 3)).astype(np.float32)
+    turned = goal @ np.diag([-1.0, -1.0, 1.0, 1.0])
+    flow_goals = [turned if symmetric and t % 2 else goal for t in range(n_steps + 1)]
 
-    def obs(T):
-        p = transform_points(T, local).astype(np.float32)
+    def obs(t):
+        p = transform_points(poses[t], local).astype(np.float32)
         f = np.zeros((len(local) + n_bg, 4), np.float32)
         f[: len(local), 0] = 1.0
-        f[: len(local), 1:] = goal_flow(p, T, goal)
+        f[: len(local), 1:] = goal_flow(p, poses[t], flow_goals[t])
         return np.concatenate([p, bg]), f
 
     out = []
     for t in range(n_steps):
-        (p, f), (p2, f2) = obs(poses[t]), obs(poses[t + 1])
+        (p, f), (p2, f2) = obs(t), obs(t + 1)
         dist = np.linalg.norm(f2[: len(local), 1:], axis=1).mean()
         done = dist < 0.03
         out.append(
             dict(points=p, features=f, index=0, motion=np.zeros(3, np.float32), reward=-dist,
                  next_points=p2, next_features=f2, terminated=done, truncated=t == n_steps - 1 and not done,
-                 goal_T=goal, achieved_T=poses[t + 1])
+                 goal_T=flow_goals[t], achieved_T=poses[t + 1], next_goal_T=flow_goals[t + 1])
         )  # fmt: skip
         if done:
             break
     return out, poses
 
 
-def test_hindsight_relabel_gives_the_flow_to_a_later_achieved_pose():
+@pytest.mark.parametrize("symmetric", [False, True], ids=["one-goal-pose", "symmetric-goal-poses"])
+def test_hindsight_relabel_gives_the_flow_to_a_later_achieved_pose(symmetric):
     """Every relabelled transition carries the goal flow, reward and termination it would have had
     if a pose its episode reached at or after it had been the goal (computed independently here
-    with the contract's goal_flow)."""
+    with the contract's goal_flow), also when the two observations' flows point to different
+    symmetric poses of the goal."""
     from sim.contract import goal_flow
 
     rng = np.random.default_rng(7)
@@ -151,8 +158,8 @@ def test_hindsight_relabel_gives_the_flow_to_a_later_achieved_pose():
     local = rng.uniform(-0.03, 0.03, (n_obj, 3))
     buf = ReplayBuffer(64, n_obj, n_bg, seed=1)
     goal = _pose(rng)
-    ep_a, poses_a = _episode(rng, local, 5, goal)
-    ep_b, poses_b = _episode(rng, local, 4, goal)
+    ep_a, poses_a = _episode(rng, local, 5, goal, symmetric=symmetric)
+    ep_b, poses_b = _episode(rng, local, 4, goal, symmetric=symmetric)
     for t in range(5):  # two envs interleaved, as the trainer adds them
         rows = [ep[t] for ep in (ep_a, ep_b) if t < len(ep)]
         stack = {k: np.stack([np.asarray(r[k]) for r in rows]) for k in rows[0]}
