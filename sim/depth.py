@@ -280,6 +280,7 @@ def seen_from_cameras(
     cameras,
     block_px: int = VISIBILITY_BLOCK_PX,
     depth_m: float = VISIBILITY_DEPTH_M,
+    normals: np.ndarray | None = None,
 ) -> np.ndarray:
     """Which of ``points (M, 3)`` some camera sees when ``surface (S, 3)`` is what is in front of it:
     (M,) bool. The z-buffer test of the training observation (``sim.observe.MeshObserver``: the
@@ -291,7 +292,8 @@ def seen_from_cameras(
     the frame of the points. Per camera, ``surface`` becomes a depth image of ``block_px`` pixel
     blocks; a point inside the image is seen unless it lies more than ``depth_m`` behind that image's
     surface. A point where ``surface`` shows nothing counts as seen; a point outside every image or
-    behind every camera is not."""
+    behind every camera is not. ``normals (M, 3)``: the points' outward normals; then a camera sees
+    only the points that face it (a thin wall's far face lies within ``depth_m`` of its near one)."""
     cameras = list(cameras)
     points = np.asarray(points, dtype=np.float64)
     seen = np.zeros(len(points), bool)
@@ -318,7 +320,15 @@ def seen_from_cameras(
 
     point_blocks = blocks(points)
     surface_blocks = point_blocks if surface is None else blocks(np.asarray(surface, dtype=np.float64))
-    for (pv, pu, pz, ok), (sv, su, sz, _) in zip(point_blocks, surface_blocks, strict=True):
+    if normals is not None:
+        normals = np.asarray(normals, dtype=np.float64)
+        facing = [((cam[1][:3, 3] - points) * normals).sum(axis=1) > 0 for cam in cameras]
+    for c, ((pv, pu, pz, ok), (sv, su, sz, _)) in enumerate(zip(point_blocks, surface_blocks, strict=True)):
+        if normals is not None:  # a point facing away is not seen by this camera, whatever the depth
+            keep = facing[c][ok]
+            ok = ok.copy()
+            ok[ok] = keep
+            pv, pu, pz = pv[keep], pu[keep], pz[keep]
         if len(pv) == 0:
             continue
         if len(sv) == 0:

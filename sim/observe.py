@@ -106,18 +106,22 @@ def camera_visible_surface(
     """The training observation's object cloud: the samples (S, 3) / normals (S, 3) in the object
     frame -> those some camera sees at pose ``T``, bin frame (floor at z = 0), metres.
 
-    ``visible_surface``'s test (not facing the floor, not touching it), then the z-buffer of the
-    object's own samples in ``cameras`` (``sim.depth.seen_from_cameras``' form, bin frame). Fewer than
-    ``MIN_VISIBLE_POINTS`` left: the floor test alone, then every sample (a degenerate view)."""
+    With ``cameras``: the samples not touching the floor that face one of the cameras and lie in
+    front in its view, the z-buffer of the object's own samples (``sim.depth.seen_from_cameras``'
+    form, bin frame). Without (or fewer than ``MIN_VISIBLE_POINTS`` seen): ``visible_surface``'s
+    test (not facing the floor, not touching it), then every sample (a degenerate view)."""
     p = transform_points(T, points_obj) if points_world is None else points_world
+    n = normals_obj @ T[:3, :3].T
     keep = visible_mask(normals_obj, T, p)
     if cameras:
-        seen = keep & seen_from_cameras(p, None, cameras)
+        # with cameras, what faces one of them and is in front in its view, whatever the normal's
+        # tilt: a flared bowl's outer wall faces down and out, and the cameras see it
+        seen = (p[:, 2] > BIN_FLOOR_Z + FLOOR_CONTACT_M) & seen_from_cameras(p, None, cameras, normals=n)
         if seen.sum() >= MIN_VISIBLE_POINTS:
             keep = seen
     if keep.sum() < MIN_VISIBLE_POINTS:
         keep = np.ones(len(p), bool)
-    return p.compress(keep, axis=0), normals_obj.compress(keep, axis=0) @ T[:3, :3].T
+    return p.compress(keep, axis=0), n.compress(keep, axis=0)
 
 
 class MeshObserver:

@@ -236,3 +236,24 @@ def test_mesh_observation_keeps_what_the_cameras_render():
     assert precision["seen"] > 0.95, precision
     assert precision["seen"] > precision["every"] + 0.02, precision
     rendered.close()
+
+
+def test_mesh_observation_shows_the_surface_the_cameras_render_on_a_flared_bowl():
+    """And the other way round: the rendered points of a bowl, whose outer wall flares out so that
+    its normals point down as well as out, have a mesh sample of the observation near them. A test
+    on the normal's tilt alone dropped that wall, which the cameras see (a tenth of the bowl's
+    rendered points had no observed sample within 5 mm)."""
+    from sim.observe import MeshObserver
+
+    env = sim.env.BinEnv(objects="bowl_01", goals="6d")
+    rendered, seen = RenderObserver(), MeshObserver()
+    covered = []
+    for episode in range(4):
+        env.reset(seed=200 + episode)
+        for _ in range(2):
+            env.step(env.action_space.sample())
+            tree = cKDTree(seen.segmented_clouds(env.scene)[0])
+            covered.append(tree.query(rendered.segmented_clouds(env.scene)[0])[0] < 0.005)
+    recall = float(np.concatenate(covered).mean())
+    assert recall > 0.91, recall  # 0.935 here; 0.855 with the tilt test
+    rendered.close()
