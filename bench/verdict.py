@@ -13,7 +13,13 @@ goal. This bench re-runs ``Registration.verdict`` of the current code on each lo
 - per episode, the step where the session stopped on a claim (success, or ambiguous: an ambiguous
   registration or, at the step limit, an uncertain one) and what the current verdict says there.
   A stop it turns ``uncertain`` before the step limit is one the loop would act on again; what
-  happens after it is not in the log, so only the stops themselves are counted.
+  happens after it is not in the log, so only the stops themselves are counted;
+- ``replayed``: the session's success rate had the loop stopped where this verdict first claims
+  success or ambiguity. Up to that step the episode is the logged one (the verdict is the only
+  change), so an earlier stop's outcome is the truth at that step; an episode it would carry on past
+  the session's own stop is ``unknown``. With ``--success-coverage 0 --success-inliers 0`` this is
+  the verdict before those two checks, replayed on a session of the current code: the same episodes,
+  the difference the checks make.
 
 Usage::
 
@@ -67,13 +73,30 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sessions", nargs="+", type=Path, help="twin session folders (or their log.jsonl)")
     ap.add_argument("--margin", type=float, default=Perception().success_margin, help="success margin (m)")
+    ap.add_argument(
+        "--success-coverage",
+        type=float,
+        default=None,
+        help="override robot.registration.SUCCESS_COVERAGE_MIN (0: the verdict without that check)",
+    )
+    ap.add_argument(
+        "--success-inliers",
+        type=float,
+        default=None,
+        help="override robot.registration.SUCCESS_INLIERS_MIN (0: the verdict without that check)",
+    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    if args.success_coverage is not None:  # read by Registration.verdict at each call
+        registration.SUCCESS_COVERAGE_MIN = args.success_coverage
+    if args.success_inliers is not None:
+        registration.SUCCESS_INLIERS_MIN = args.success_inliers
 
     thr = SUCCESS_THRESHOLD_M
     verdicts: Counter = Counter()  # (verdict, truly within 3 cm)
     near = {"true": [], "false": []}  # (coverage, inliers) of registrations under thr - margin
     stops: Counter = Counter()
+    replayed: Counter = Counter()  # success / failure / unknown had the loop stopped on this verdict
     for session in args.sessions:
         obs: dict[int, list[dict]] = {}
         ends: dict[int, dict] = {}
@@ -90,6 +113,19 @@ def main() -> None:
                 if reg.distance < thr - args.margin:
                     near["true" if truth else "false"].append((reg.goal_coverage, reg.inlier_fraction))
             end = ends.get(ep)
+            if end is not None:
+                claims = [
+                    o
+                    for o in steps
+                    if _registration(o["registration"]).verdict(thr, args.margin) in ("success", "ambiguous")
+                ]
+                first = claims[0] if claims else None
+                if first is not None and first["step"] < steps[-1]["step"]:
+                    replayed["success" if first["true_distance_m"] < thr else "failure"] += 1
+                elif first is None and end.get("cause") in ("success", "ambiguous") and len(steps) < 11:
+                    replayed["unknown"] += 1  # it would have acted again where the session stopped
+                else:
+                    replayed["success" if end.get("true_success") else "failure"] += 1
             if end is not None and end.get("cause") in ("success", "ambiguous"):
                 last = steps[-1]
                 now = _registration(last["registration"]).verdict(thr, args.margin)
@@ -117,6 +153,10 @@ def main() -> None:
             "not_within_3cm": under(near["false"], cov_min, inl_min),
         },
         "stops": dict(sorted(stops.items())),
+        "replayed": {
+            **dict(replayed),
+            "success_rate": replayed["success"] / max(1, sum(replayed.values())),
+        },
     }
     print(f"verdict vs truth, {len(args.sessions)} session(s), margin {args.margin * 1000:.1f} mm")
     print(f"{'verdict':<12}{'within 3 cm':>14}{'not within':>14}")
@@ -132,6 +172,11 @@ def main() -> None:
         )
     for k, n in results["stops"].items():
         print(f"stop: {k}: {n}")
+    r = results["replayed"]
+    print(
+        f"replayed with this verdict: success {r['success_rate']:.0%} ({r.get('success', 0)} of "
+        f"{sum(replayed.values())}; {r.get('unknown', 0)} unknown)"
+    )
     if args.json:
         meta = {"command": " ".join(sys.argv), "python": platform.python_version()}
         atomic_write_text(args.json, json.dumps({**results, "meta": meta}, indent=2))
