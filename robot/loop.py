@@ -600,6 +600,11 @@ class Deployment:
         w = self.world
         # episode ``ep`` of seed s is ``hydo eval --seed s``'s episode ``ep`` (same object, start, goal)
         episode_rng = np.random.default_rng(episode_seed(self.cfg.seed, ep))
+        # and its depth noise, thinning and policy samples are its own: drawn from (seed, ep), not
+        # from where earlier episodes left a shared stream, so a change that alters one episode (a
+        # step more or less) leaves every other as it was and two versions compare episode by episode
+        w.rng = np.random.default_rng([episode_seed(self.cfg.seed, ep), 1])
+        self.rng = np.random.default_rng([episode_seed(self.cfg.seed, ep), 2])
         asset, start, goal_pose = sample_episode(w, assets, self.goal_mode, episode_rng)
         if w.asset is not asset:
             w.load(asset)

@@ -138,6 +138,27 @@ def test_true_perception_observes_the_twin_like_the_training_env(tiny_model, tmp
     env.close()
 
 
+def test_a_twin_episode_does_not_depend_on_how_long_the_one_before_ran(tiny_model, tmp_path):
+    """Episode 1 sees the same clouds whether episode 0 ran one step or three: each twin episode's
+    depth noise and samples are drawn from (seed, episode), so two code versions that end episode 0
+    differently still compare episode 1 to episode 1."""
+
+    def episode_1(max_steps: int, folder: str) -> list:
+        cfg = DeployConfig(
+            robot="sim", model=tiny_model, episodes=2, max_steps=max_steps, seed=3, log_dir=tmp_path / folder
+        )
+        Deployment.prepare(cfg).run()
+        events = read_log(tmp_path / folder)
+        return [
+            (e["n_object_points"], e["registration"]["distance_m"])
+            for e in events
+            if e["event"] == "observation" and e["episode"] == 1 and e["step"] == 0
+        ]
+
+    first, second = episode_1(1, "a"), episode_1(3, "b")
+    assert first and first == second
+
+
 def test_true_perception_exists_only_in_the_twin(tiny_model, tmp_path):
     with pytest.raises(InputError, match="only in the twin"):
         Deployment.prepare(
