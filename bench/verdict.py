@@ -98,6 +98,9 @@ def main() -> None:
     stops: Counter = Counter()
     replayed: Counter = Counter()  # success / failure / unknown had the loop stopped on this verdict
     for session in args.sessions:
+        # the session's step limit (a stop there is no claim the verdict could have withheld)
+        meta = (session if session.is_dir() else session.parent) / "session.json"
+        limit = json.loads(meta.read_text())["config"]["max_steps"] if meta.is_file() else 10
         obs: dict[int, list[dict]] = {}
         ends: dict[int, dict] = {}
         for e in _events(session):
@@ -122,7 +125,11 @@ def main() -> None:
                 first = claims[0] if claims else None
                 if first is not None and first["step"] < steps[-1]["step"]:
                     replayed["success" if first["true_distance_m"] < thr else "failure"] += 1
-                elif first is None and end.get("cause") in ("success", "ambiguous") and len(steps) < 11:
+                elif (
+                    first is None
+                    and end.get("cause") in ("success", "ambiguous")
+                    and steps[-1]["step"] < limit
+                ):
                     replayed["unknown"] += 1  # it would have acted again where the session stopped
                 else:
                     replayed["success" if end.get("true_success") else "failure"] += 1
