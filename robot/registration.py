@@ -8,7 +8,10 @@ current object cloud onto the goal cloud (``goal.npz``, recorded by ``hydo deplo
 1. global initialisation: the current cloud's centroid moved onto the goal's, under each of a fixed
    set of candidate rotations (yaw every 10° for planar goals; 24 axis-aligned orientations × yaw
    every 30° for 6d goals), scored by the trimmed mean nearest-neighbour distance of a subsample
-   (one vectorised ``cKDTree`` query for all candidates);
+   (one vectorised ``cKDTree`` query for all candidates). The current orientation itself (no turn)
+   is always an ICP start besides the best-scoring ones: an object symmetric about an axis (a bowl,
+   a cylinder) scores alike under every turn about it, and only the start without one finds the
+   pose that needs the least motion;
 2. trimmed point-to-point ICP (Kabsch) from the best few, keeping the closest 80% of
    correspondences (the two clouds are partial views of different sides);
 3. residuals: RMS of inlier distances (< 1 cm) and the inlier fraction. The inlier fraction counts
@@ -246,10 +249,11 @@ def register(
     d = np.sort(d.reshape(len(Rs), -1), axis=1)[:, : int(TRIM * coarse.shape[0])]
     solutions = []  # (trimmed RMS, T) of ICP from each distinct start
     starts = REFINE_CANDIDATES if search == "fast" else WIDE_REFINE_CANDIDATES
-    for c in _distinct_starts(Rs, d.mean(1), starts):
+    no_turn = np.eye(3)
+    for R0 in [no_turn, *Rs[_distinct_starts(Rs, d.mean(1), starts, taken=(no_turn,))]]:
         T0 = np.eye(4)
-        T0[:3, :3] = Rs[c]
-        T0[:3, 3] = ct - Rs[c] @ cs
+        T0[:3, :3] = R0
+        T0[:3, 3] = ct - R0 @ cs
         T, rms = _icp(src, tgt, tree, T0)
         if len(cameras):
             # refit on the points the goal can show: the others have no counterpart in the goal cloud
@@ -321,18 +325,20 @@ def goal_visible(points: np.ndarray, goal: np.ndarray, cameras: Sequence) -> np.
     return seen_from_cameras(points, goal, views)
 
 
-def _distinct_starts(Rs: np.ndarray, score: np.ndarray, n: int = REFINE_CANDIDATES) -> list[int]:
-    """Up to ``n`` indices of the best-scoring (lowest) rotations ``Rs (C, 3, 3)``,
-    each at least ``DISTINCT_START_DEG`` from those already taken."""
+def _distinct_starts(
+    Rs: np.ndarray, score: np.ndarray, n: int = REFINE_CANDIDATES, taken: Sequence[np.ndarray] = ()
+) -> list[int]:
+    """Up to ``n`` indices of the best-scoring (lowest) rotations ``Rs (C, 3, 3)``, each at least
+    ``DISTINCT_START_DEG`` from those already picked and from the rotations ``taken`` (3, 3) each."""
     cos_min = np.cos(np.deg2rad(DISTINCT_START_DEG))
-    taken: list[int] = []
+    picked: list[int] = []
     for c in np.argsort(score):
         # rotation angle between R_c and R_t: cos θ = (tr(R_c R_tᵀ) − 1) / 2
-        if all((np.trace(Rs[c] @ Rs[t].T) - 1) / 2 < cos_min for t in taken):
-            taken.append(int(c))
-            if len(taken) == n:
+        if all((np.trace(Rs[c] @ R.T) - 1) / 2 < cos_min for R in (*taken, *Rs[picked])):
+            picked.append(int(c))
+            if len(picked) == n:
                 break
-    return taken
+    return picked
 
 
 def adds_error(T_est: np.ndarray, T_true: np.ndarray, points: np.ndarray) -> float:
