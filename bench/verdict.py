@@ -15,7 +15,8 @@ goal. This bench re-runs ``Registration.verdict`` of the current code on each lo
   A stop it turns ``uncertain`` before the step limit is one the loop would act on again; what
   happens after it is not in the log, so only the stops themselves are counted;
 - ``replayed``: the session's success rate had the loop stopped where this verdict first claims
-  success or ambiguity. Up to that step the episode is the logged one (the verdict is the only
+  success (and, with ``--stop-on-ambiguous``, ambiguity: the loop before session 41 ended an
+  episode on an ambiguous registration; it now acts again). Up to that step the episode is the logged one (the verdict is the only
   change), so an earlier stop's outcome is the truth at that step; an episode it would carry on past
   the session's own stop is ``unknown``. With ``--success-coverage 0 --success-inliers 0`` this is
   the verdict before those two checks, replayed on a session of the current code: the same episodes,
@@ -85,8 +86,14 @@ def main() -> None:
         default=None,
         help="override robot.registration.SUCCESS_INLIERS_MIN (0: the verdict without that check)",
     )
+    ap.add_argument(
+        "--stop-on-ambiguous",
+        action="store_true",
+        help="replay the earlier loop, which ended an episode on an ambiguous registration",
+    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    claimed = ("success", "ambiguous") if args.stop_on_ambiguous else ("success",)
     if args.success_coverage is not None:  # read by Registration.verdict at each call
         registration.SUCCESS_COVERAGE_MIN = args.success_coverage
     if args.success_inliers is not None:
@@ -118,9 +125,7 @@ def main() -> None:
             end = ends.get(ep)
             if end is not None:
                 claims = [
-                    o
-                    for o in steps
-                    if _registration(o["registration"]).verdict(thr, args.margin) in ("success", "ambiguous")
+                    o for o in steps if _registration(o["registration"]).verdict(thr, args.margin) in claimed
                 ]
                 first = claims[0] if claims else None
                 if first is not None and first["step"] < steps[-1]["step"]:

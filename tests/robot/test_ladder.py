@@ -86,8 +86,9 @@ def test_registration_verdict_up_to_symmetry_and_ambiguous_when_the_views_differ
     assert Registration(np.eye(4), 0.001, 1.0, 0.027, 0.0).verdict(SUCCESS_THRESHOLD_M, 0.005) == "uncertain"
 
 
-def test_an_ambiguous_registration_ends_the_episode_and_is_not_a_success(tiny_model, tmp_path, monkeypatch):
-    """The deploy loop reports it as ambiguous (summary and table), sends no motion for it."""
+def test_an_ambiguous_registration_is_acted_on_again_and_never_a_success(tiny_model, tmp_path, monkeypatch):
+    """The deploy loop does not stop on it: the policy acts again (the push changes the view) up to
+    the step limit, where the episode is reported as ambiguous (summary and table), not a success."""
     from robot import loop
     from robot.report import summary_lines
 
@@ -98,10 +99,12 @@ def test_an_ambiguous_registration_ends_the_episode_and_is_not_a_success(tiny_mo
         return Registration(reg.T, reg.rmse, reg.inlier_fraction, 0.01, reg.seconds, (0.06,), 0.5), widened
 
     monkeypatch.setattr(loop, "register_checked", ambiguous)
-    dep = Deployment.prepare(DeployConfig(robot="sim", model=tiny_model, episodes=1, log_dir=tmp_path / "s"))
+    dep = Deployment.prepare(
+        DeployConfig(robot="sim", model=tiny_model, episodes=1, max_steps=2, log_dir=tmp_path / "s")
+    )
     res = dep.run()
     (ep,) = res.episodes
-    assert not ep.success and ep.cause == "ambiguous" and ep.steps == 0 and res.commands_sent == 0
+    assert not ep.success and ep.cause == "ambiguous" and ep.steps == 2 and res.commands_sent > 0
     assert res.summary()["ambiguous_episodes"] == 1 and res.summary()["success_rate"] == 0.0
     assert ("ambiguous (not counted as success)", "1") in summary_lines(res)
 
