@@ -47,6 +47,7 @@ from models.perf import configure_cpu, resolve_precision, update_autocast
 from models.replay import ReplayBuffer, Transition
 from sim.atomic import atomic_write_text
 from sim.contract import SUCCESS_THRESHOLD_M, pose_matrix
+from sim.symmetry import symmetries
 
 EVAL_SEED_OFFSET = 10_000  # evaluation episodes never share seeds with training episodes
 LOGS = ("metrics.jsonl", "eval.jsonl")
@@ -158,6 +159,12 @@ class Trainer:
             seed=seed,
             success_threshold=SUCCESS_THRESHOLD_M,
         )
+        # Hindsight goals up to the object's symmetry: each transition records its object's row in
+        # the run's object set (the same order on every worker and resume), the replay its symmetries.
+        assets = self.envs[0].assets
+        self.object_ids = {a.name: i for i, a in enumerate(assets)}
+        self.symmetries = tuple(symmetries(a) for a in assets) if cfg.relabel_future else ()
+        self.buffer.symmetries = self.symmetries
         self.rng = np.random.default_rng(seed)
         self.generator = torch.Generator().manual_seed(seed)
         self.env_steps = 0
@@ -284,6 +291,7 @@ class Trainer:
         self.rng.bit_generator.state = json.loads(state["np_rng"])
         if replay.exists():
             self.buffer, log = load_shard(self.run_dir, self.rank, state, self.cfg.n_obj, self.cfg.n_bg)
+            self.buffer.symmetries = self.symmetries
             self.replay_seq, self.replay_snapshot_seq = log["replay_seq"], log["replay_snapshot_seq"]
             self.replay_logged, self.replay_snapshot_due = log["replay_logged"], not log["continued"]
             # the shard was saved just before the checkpoint: a cut in between leaves it ahead
@@ -466,6 +474,7 @@ class Trainer:
                                 normals=obs[k]["normals"],
                                 next_normals=next_obs["normals"],
                                 next_goal_T=env.T_goal_eff.copy(),
+                                object_id=self.object_ids[env.scene.asset.name],
                             )
                         )
                         ep_return[k] += reward

@@ -17,7 +17,10 @@ with flow ``φ`` sits at ``q = p + φ`` in the old goal pose ``G``, so for a new
 and the reward and success are recomputed from ``φ'`` of the next observation. ``G`` is the pose the
 observation's flow points to, stored per observation: for a symmetric object the env points the
 flow to the nearest pose that looks like the goal, which may differ between an observation and the
-next (the relabelled goal ``G'`` is the exact pose reached, one of the poses that look like it).
+next. The relabelled goal is treated the same way: with the object's symmetries ``S`` (given per
+object id, :attr:`ReplayBuffer.symmetries`), ``G'`` is, per observation, the one of the poses
+``A·S_k`` that look like the pose reached ``A`` whose flow is smallest over the observed points, so a
+cylinder that rolled on its way is not asked to roll back.
 Every transition then also teaches the critic what its push actually did, near the goal as much as
 far from it.
 
@@ -76,7 +79,9 @@ class Transition(NamedTuple):
     the object pose after the primitive (world transforms); and ``next_goal_T (E, 4, 4)``, the goal
     of the next observation's flow, where it may differ: the env points the flow to the nearest
     pose that looks like the goal (``sim.env``'s symmetric goals), which can change with the object's
-    pose. Without it the next observation's goal is ``goal_T``.
+    pose. Without it the next observation's goal is ``goal_T``. ``object_id (E,)``: which object
+    (its row in :attr:`ReplayBuffer.symmetries`), so that a relabelled goal is reached up to its
+    symmetry too; without it the relabelled goal is the exact pose reached.
     """
 
     points: np.ndarray  # (E, N, 3) metres, world frame, object points first
@@ -93,6 +98,7 @@ class Transition(NamedTuple):
     normals: np.ndarray | None = None  # (E, N_obj, 3)
     next_normals: np.ndarray | None = None  # (E, N_obj, 3)
     next_goal_T: np.ndarray | None = None  # (E, 4, 4); None: goal_T
+    object_id: np.ndarray | int | None = None  # (E,) the object's row in ReplayBuffer.symmetries
 
 
 def _available_memory_bytes() -> int | None:
@@ -121,14 +127,15 @@ SAVED_ARRAYS = (
     "achieved_T",
     "has_poses",
     "next_goal_T",
+    "object_id",
     "next_slot",
 )
 REQUIRED_ARRAYS = ("meta", "rng", *SAVED_ARRAYS[:9])
 #: A segment (:meth:`ReplayBuffer.save_segment`) holds ``slots`` and every saved array at those
 #: slots, except ``next_slot``, which it holds whole (a new transition links the episode's previous
-#: one, which may sit in an older segment). ``next_goal_T`` came later: segments written before it
-#: lack it (those slots read it as ``goal_T``).
-SEGMENT_OPTIONAL = ("next_goal_T",)
+#: one, which may sit in an older segment). ``next_goal_T`` and ``object_id`` came later: segments
+#: written before them lack them (those slots read ``goal_T`` and no object: exact relabelled goals).
+SEGMENT_OPTIONAL = ("next_goal_T", "object_id")
 SEGMENT_ARRAYS = (
     "meta",
     "rng",
@@ -196,6 +203,11 @@ class ReplayBuffer:
         self.achieved_T = np.zeros((c, 3, 4), dtype=np.float32)
         self.next_goal_T = np.zeros((c, 3, 4), dtype=np.float32)  # all zero: the same as goal_T
         self.has_poses = np.zeros((c,), dtype=np.bool_)
+        self.object_id = np.full((c,), -1, dtype=np.int16)  # -1: not given (old replays)
+        #: Per object id, the object's symmetry transforms ``(S, 4, 4)`` (object frame, identity first,
+        #: ``sim.symmetry.symmetries``). Not saved: the trainer sets it from the run's object set, whose
+        #: order fixes the ids. Empty: relabelled goals are the exact poses reached.
+        self.symmetries: tuple[np.ndarray, ...] = ()
         self.next_slot = np.full((c,), -1, dtype=np.int32)
         self._last_slot: dict[int, int] = {}  # stream (env) id → its latest slot, while its episode runs
         self.unsaved = 0  # transitions added since the last save / save_segment / load (≤ capacity)
@@ -206,7 +218,7 @@ class ReplayBuffer:
         """Bytes one stored transition occupies (both clouds and their normals float16, action,
         reward, flags, relabelling poses)."""
         cloud = self.n_points * (3 + FEATURE_DIM) * 2 + self.n_obj * 3 * 2  # float16
-        poses = 3 * 12 * 4 + 1 + 4  # goal_T, achieved_T, next_goal_T, has_poses, next_slot
+        poses = 3 * 12 * 4 + 1 + 2 + 4  # goal_T, achieved_T, next_goal_T, has_poses, object_id, next_slot
         return 2 * cloud + 4 + 3 * 4 + 4 + 1 + 1 + poses
 
     @property
@@ -225,7 +237,7 @@ class ReplayBuffer:
         truncated), so add every env's transition in the same order at each step.
         """
         (points, features, index, motion, reward, next_points, next_features, terminated, truncated,
-         goal_T, achieved_T, normals, next_normals, next_goal_T) = transition  # fmt: skip
+         goal_T, achieved_T, normals, next_normals, next_goal_T, object_id) = transition  # fmt: skip
         points = np.asarray(points)
         single = points.ndim == 2
         cols = [points, features, index, motion, reward, next_points, next_features, terminated, truncated]
@@ -275,6 +287,7 @@ class ReplayBuffer:
                 0.0 if next_goal_T is None else np.asarray(next_goal_T).reshape(e, 4, 4)[:, :3]
             )
             self.has_poses[slots] = True
+            self.object_id[slots] = -1 if object_id is None else np.asarray(object_id).reshape(e)
             ended = cols[7] | cols[8]
             for k, slot in enumerate(slots.tolist()):
                 prev = self._last_slot.pop(k, None)
@@ -434,7 +447,10 @@ class ReplayBuffer:
             (("points", "features"), old_goal),
             (("next_points", "next_features"), next_goal),
         ):
-            rel = new_goal @ np.linalg.inv(goal)  # (S, 4, 4): the flow's goal pose → the new goal pose
+            target = self._nearest_symmetric(
+                new_goal, goal, slots, cols[pts][rows, :n], cols[feat][rows, :n, 1:]
+            )
+            rel = target @ np.linalg.inv(goal)  # (S, 4, 4): the flow's goal pose → the new goal pose
             p = cols[pts][rows, :n].astype(np.float64)  # (S, n_obj, 3)
             q = p + cols[feat][rows, :n, 1:]  # where each point sits in the old goal pose
             moved = q @ rel[:, :3, :3].transpose(0, 2, 1) + rel[:, None, :3, 3]
@@ -442,6 +458,35 @@ class ReplayBuffer:
         distance = np.linalg.norm(cols["next_features"][rows, :n, 1:], axis=-1).mean(axis=1)
         cols["reward"][rows] = -distance
         cols["terminated"][rows] = distance < self.success_threshold
+
+    def _nearest_symmetric(
+        self, new_goal: np.ndarray, goal: np.ndarray, slots: np.ndarray, points: np.ndarray, flow: np.ndarray
+    ) -> np.ndarray:
+        """Per relabelled row, the pose among ``new_goal · S_k`` (the object's symmetries) that the
+        env would point this observation's flow to: the smallest mean flow over its object points.
+
+        ``new_goal`` / ``goal`` (S, 4, 4): the relabelled goal and the goal the stored flow points to;
+        ``points`` / ``flow`` (S, n_obj, 3) float32: the observation's object points and stored flow.
+        A point sits at ``q = p + φ`` in ``goal``, so under ``new_goal · S_k`` it goes to
+        ``new_goal · S_k · goal⁻¹ · q``. Rows without an object id (or with no symmetry) keep ``new_goal``.
+        Returns (S, 4, 4)."""
+        out = new_goal.copy()
+        if not self.symmetries:
+            return out
+        ids = self.object_id[slots]
+        for oid in np.unique(ids[ids >= 0]).tolist():
+            sym = self.symmetries[oid]
+            if len(sym) <= 1:
+                continue
+            sel = np.flatnonzero(ids == oid)
+            p = points[sel].astype(np.float64)  # (s, n, 3)
+            q = p + flow[sel]
+            cand = new_goal[sel, None] @ sym[None]  # (s, K, 4, 4)
+            rel = cand @ np.linalg.inv(goal[sel])[:, None]  # (s, K, 4, 4)
+            moved = np.einsum("skij,snj->skni", rel[..., :3, :3], q) + rel[:, :, None, :3, 3]
+            cost = np.sqrt(((moved - p[:, None]) ** 2).sum(-1)).mean(-1)  # (s, K) mean flow
+            out[sel] = cand[np.arange(len(sel)), cost.argmin(1)]
+        return out
 
     _ARRAYS = SAVED_ARRAYS
 
