@@ -25,8 +25,8 @@ Every transition then also teaches the critic what its push actually did, near t
 far from it.
 
 Memory (N = N_obj + N_bg points): two clouds of ``N × (3 + 4)`` float16 and their object normals
-``N_obj × 3`` float16 per transition, plus the three poses (3 × 4 float32 each) and an episode link,
-i.e. ``28·N + 12·N_obj + 171`` bytes; 128 + 128 points → 8.9 kB, 200k transitions → 1.65 GiB.
+``N_obj × 3`` float16 per transition, plus the three poses (3 × 4 float32 each), the object id and an episode link,
+i.e. ``28·N + 12·N_obj + 173`` bytes; 128 + 128 points → 8.9 kB, 200k transitions → 1.65 GiB.
 
 Resume: :meth:`save` / :meth:`load` write the filled part and the sampling RNG state to one ``.npz``
 (atomically), so a resumed run samples exactly what it would have sampled. A full shard is ~0.9 GB
