@@ -444,3 +444,39 @@ def test_a_relabelled_goal_is_reached_up_to_the_objects_symmetry():
         results[with_symmetries] = worst
     # up to symmetry the relabelled goals are a few cm away; exact, the half turns put them ~5 cm further
     assert results[True] < results[False] - 0.02
+
+
+def test_the_symmetric_relabel_search_picks_per_row_what_the_plain_formula_picks():
+    """``ReplayBuffer._nearest_symmetric`` searches every relabelled row of every object in one
+    padded matmul; each row must get the candidate ``new_goal · S_k`` with the smallest mean flow over
+    its points, computed plainly per row and per candidate, whatever mix of object ids (none, one
+    symmetry, 2 or 5) and symmetry counts the batch holds."""
+    rng = np.random.default_rng(5)
+    n_obj = 24
+
+    def turns(k):  # k turns about z, identity first
+        out = np.tile(np.eye(4), (k, 1, 1))
+        for j in range(k):
+            a = 2 * np.pi * j / k
+            out[j, :2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+        return out
+
+    buf = ReplayBuffer(8, n_obj, 4, seed=0)
+    buf.symmetries = (np.eye(4)[None], turns(2), turns(5))
+    buf.object_id[:] = [-1, 0, 1, 2, 2, 1, 0, 2]
+    s = 40
+    slots = rng.integers(0, 8, s)
+    new_goal, goal = np.stack([_pose(rng) for _ in range(s)]), np.stack([_pose(rng) for _ in range(s)])
+    points = rng.uniform(-0.1, 0.1, (s, n_obj, 3)).astype(np.float32)
+    flow = rng.normal(0.0, 0.05, (s, n_obj, 3)).astype(np.float32)
+    got = buf._nearest_symmetric(new_goal, goal, slots, points, flow)
+    for r in range(s):
+        oid = buf.object_id[slots[r]]
+        sym = buf.symmetries[oid] if oid >= 0 else np.eye(4)[None]
+        p = points[r].astype(np.float64)
+        q = np.c_[p + flow[r], np.ones(n_obj)]  # homogeneous, where each point sits in `goal`
+        costs = [
+            np.linalg.norm((q @ (new_goal[r] @ S @ np.linalg.inv(goal[r])).T)[:, :3] - p, axis=1).mean()
+            for S in sym
+        ]
+        np.testing.assert_allclose(got[r], new_goal[r] @ sym[int(np.argmin(costs))], atol=1e-12)
