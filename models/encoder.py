@@ -42,6 +42,13 @@ from models.common import check_shape
 FEATURE_DIM = 4  # [is_object, goal_flow_xyz]: the observation contract's per-point features
 
 
+def _max_pool(x: torch.Tensor) -> torch.Tensor:
+    """``x (B, N, G)`` → ``(B, G)``, the max over the points. Without grad (target encoder, acting)
+    ``amax``, ~13× faster on this CPU than ``max(dim)``, which also finds the indices; with grad
+    ``max(dim)``, whose backward is cheaper than ``amax``'s. The same values either way."""
+    return x.max(dim=1).values if x.requires_grad else x.amax(dim=1)
+
+
 class EncoderContext(NamedTuple):
     """Intermediate per-point and per-cloud tensors; ``head`` turns them into features."""
 
@@ -124,9 +131,9 @@ class PointEncoder(nn.Module):
         h = self.local(x)  # (B, N, H)
         h_obj = h[:, : self.n_obj]  # (B, N_obj, H)
         g_all = self.global_proj(h)  # (B, N, G)
-        pools = [g_all[:, : self.n_obj].max(dim=1).values]  # (B, G); max's backward is cheaper than amax's
+        pools = [_max_pool(g_all[:, : self.n_obj])]  # (B, G)
         if self.n_bg > 0:
-            pools.append(g_all[:, self.n_obj :].max(dim=1).values)  # (B, G)
+            pools.append(_max_pool(g_all[:, self.n_obj :]))  # (B, G)
         g = torch.relu(torch.cat(pools, dim=-1))  # (B, 2G)
         return EncoderContext(local=h_obj, context=self.head_global(g))
 
