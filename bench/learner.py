@@ -10,6 +10,12 @@ Examples::
     python bench/learner.py
     python bench/learner.py --algos hydo-cm --batch-sizes 32,64,128 --json out/learner.json
     python bench/learner.py --algos hydo --set actor_points=32
+    python bench/learner.py --algos hydo-cm --threads 1 --baseline 07e6d1a --repeats 3
+
+With ``--baseline REV`` the same measurement runs on REV's code (``bench/_baseline.py``: a temporary
+git worktree) and on this tree's, alternately ``--repeats`` times in subprocesses, and the table
+gives each side's median updates/s and their ratio (JSON: ``{"baseline": {...}, "current": {...},
+"runs": [...], "speedup": {key: ratio}, "meta"}``).
 """
 
 from __future__ import annotations
@@ -19,7 +25,9 @@ import json
 import os
 import platform
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import fields
 from pathlib import Path
@@ -32,6 +40,10 @@ import torch  # noqa: E402
 from models.algos import ALGOS, AgentConfig, HybridAgent  # noqa: E402
 from models.perf import configure_cpu, native_bf16, update_autocast  # noqa: E402
 from models.replay import ReplayBuffer, Transition  # noqa: E402
+from sim.atomic import atomic_write_text  # noqa: E402
+
+sys.path.append(str(Path(__file__).resolve().parent))  # after the repo root: bench/sim.py must not shadow sim
+from _baseline import checkout, remove_checkout  # noqa: E402
 
 
 def parse_overrides(items: list[str]) -> dict:
@@ -147,7 +159,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="AgentConfig override")
     ap.add_argument("--json", type=Path, help="write results to this JSON file")
+    ap.add_argument("--baseline", metavar="REV", help="compare against this commit's code (a git revision)")
+    ap.add_argument("--repeats", type=int, default=3, help="with --baseline: alternations of the two")
     args = ap.parse_args(argv)
+    if args.baseline:
+        return compare_with_baseline(args, argv if argv is not None else sys.argv[1:])
 
     cpu = configure_cpu(args.threads)
     if args.bf16 and native_bf16() is None:
@@ -224,7 +240,71 @@ def main(argv: list[str] | None = None) -> int:
         pass
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps(results, indent=2) + "\n")
+    return 0
+
+
+def _strip_baseline(argv: list[str]) -> list[str]:
+    """``argv`` without ``--baseline``, ``--repeats`` and ``--json`` (and their values)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+            continue
+        name = a.split("=", 1)[0]
+        if name in ("--baseline", "--repeats", "--json"):
+            skip = "=" not in a
+            continue
+        out.append(a)
+    return out
+
+
+def compare_with_baseline(args: argparse.Namespace, argv: list[str]) -> int:
+    """REV's ``bench/learner.py`` and this one, alternately in subprocesses with the same arguments;
+    median updates/s of each (algo, batch size) and the ratio current / baseline."""
+    if args.repeats < 1:
+        raise SystemExit("bench/learner.py: --repeats must be at least 1")
+    here = Path(__file__).resolve().parents[1]
+    common = _strip_baseline(argv)
+    runs: list[dict] = []
+    with tempfile.TemporaryDirectory(prefix="hydo-bench-learner-") as tmp:
+        src = checkout(args.baseline, Path(tmp))
+        try:
+            for k in range(args.repeats):  # alternate, so slow spells of a shared machine hit both
+                for side, root in (("baseline", src), ("current", here)):
+                    out = Path(tmp) / f"{side}-{k}.json"
+                    cmd = [sys.executable, str(root / "bench" / "learner.py"), *common, "--json", str(out)]
+                    r = subprocess.run(cmd, cwd=root, capture_output=True, text=True)
+                    if r.returncode != 0:
+                        raise SystemExit(f"bench/learner.py: the {side} run failed:\n{r.stderr[-2000:]}")
+                    runs.append({"side": side, "repeat": k, "results": json.loads(out.read_text())})
+        finally:
+            remove_checkout(src)
+    keys = [key for key in runs[0]["results"] if key != "meta"]
+    results: dict = {"runs": runs, "speedup": {}}
+    for side in ("baseline", "current"):
+        results[side] = {
+            key: statistics.median(r["results"][key]["updates_per_s"] for r in runs if r["side"] == side)
+            for key in keys
+        }
+    for key in keys:
+        results["speedup"][key] = results["current"][key] / results["baseline"][key]
+    results["meta"] = {
+        "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
+        "baseline": args.baseline,
+        "repeats": args.repeats,
+        "machine": platform.processor() or platform.machine(),
+        "native_bf16": native_bf16(),
+    }
+    for key in keys:
+        print(
+            f"{key:16s} baseline {results['baseline'][key]:7.1f} upd/s  current {results['current'][key]:7.1f} "
+            f"upd/s  {results['speedup'][key]:.2f}x  (medians of {args.repeats})",
+            flush=True,
+        )
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(args.json, json.dumps(results, indent=2) + "\n")
     return 0
 
 

@@ -44,29 +44,15 @@ sys.path.insert(0, str(ROOT))
 
 from sim.atomic import atomic_write_text  # noqa: E402
 
+sys.path.append(str(ROOT / "bench"))  # after the repo root: bench/sim.py must not shadow sim
+from _baseline import checkout, remove_checkout  # noqa: E402
+
 LAYOUTS = {
     "default": ["--workers", "2"],
     "serial": ["--workers", "1", "--threads", "1"],
     "baseline": ["--workers", "2"],
 }
 RATES = ("env_steps_per_hour", "updates_per_hour", "sample_gradients_per_hour")
-
-
-def checkout(rev: str, folder: Path) -> Path:
-    """``rev``'s tree in a detached worktree under ``folder`` (removed again by :func:`remove_checkout`)."""
-    path = folder / "baseline-src"
-    r = subprocess.run(
-        ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(path), rev],
-        capture_output=True,
-        text=True,
-    )
-    if r.returncode != 0:
-        raise SystemExit(f"bench/trainer.py: cannot check out --baseline {rev}: {r.stderr.strip()}")
-    return path
-
-
-def remove_checkout(path: Path) -> None:
-    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(path)], capture_output=True)
 
 
 def run_loop(name: str, args: argparse.Namespace, folder: Path, src: Path = ROOT, tag: str = "") -> dict:

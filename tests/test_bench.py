@@ -79,7 +79,8 @@ CASES = {
 
 
 def test_every_bench_script_has_a_smoke_case():
-    assert sorted(p.name for p in (ROOT / "bench").glob("*.py")) == sorted(CASES)
+    # bench/_*.py are helpers the scripts import, not scripts
+    assert sorted(p.name for p in (ROOT / "bench").glob("[!_]*.py")) == sorted(CASES)
 
 
 @pytest.mark.slow
@@ -122,3 +123,26 @@ def test_trainer_bench_against_a_baseline_commit(tmp_path):
         assert row["updates_per_env_step"] == pytest.approx(0.5, rel=0.2)
     worktrees = subprocess.run(["git", "-C", str(ROOT), "worktree", "list"], capture_output=True, text=True)
     assert "baseline-src" not in worktrees.stdout
+
+
+@pytest.mark.slow
+def test_learner_bench_compares_with_a_baseline_commit(tmp_path):
+    """``bench/learner.py --baseline REV`` runs REV's bench and this one alternately and reports the
+    ratio of their update rates (here REV = HEAD, whose code is this tree's as committed)."""
+    out = tmp_path / "bench.json"
+    args = ["--algos", "hydo-cm", "--seconds", "1", "--threads", "1", "--set", "n_obj=16", "--set", "n_bg=16"]
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "learner.py"), *args, "--baseline", "HEAD", "--repeats", "1"]
+        + ["--json", str(out)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    data = json.loads(out.read_text())
+    assert [run["side"] for run in data["runs"]] == ["baseline", "current"]
+    assert data["speedup"]["hydo-cm"] == pytest.approx(
+        data["current"]["hydo-cm"] / data["baseline"]["hydo-cm"]
+    )
+    assert data["baseline"]["hydo-cm"] > 0 and data["current"]["hydo-cm"] > 0
