@@ -15,9 +15,6 @@ episodes (``hydo eval --seed``'s):
 - ``render-mesh-normals``: the rendered points, each with the exact normal of the nearest mesh
   sample: the rendered points with the training's *normals*;
 - ``render``: the deploy path's observation;
-- ``render-voxel``: the deploy path's observation thinned to one point per ``VOXEL_M`` cube
-  (``sim.depth.voxel_thin``, after the normals): a fused depth cloud is denser where several cameras
-  or a head-on view see the surface, mesh samples are uniform over the area.
 
 ``mesh`` → ``mesh-seen`` is what the rest of the rendered coverage costs; ``render-mesh-normals`` → ``render`` is what PCA
 normals cost. Per variant: success, per move / flip and per object.
@@ -53,11 +50,10 @@ from hydo_cli.policies import load_policy  # noqa: E402
 from hydo_cli.report import goal_kind_breakdown  # noqa: E402
 from hydo_cli.rollout import run_episodes, summarize  # noqa: E402
 from sim.atomic import atomic_write_text  # noqa: E402
-from sim.depth import NORMAL_K, estimate_normals, voxel_thin  # noqa: E402
+from sim.depth import NORMAL_K, estimate_normals  # noqa: E402
 from sim.observe import MeshObserver  # noqa: E402
 
-VARIANTS = ("mesh-all", "mesh", "mesh-seen", "mesh-pca", "render-mesh-normals", "render", "render-voxel")
-VOXEL_M = 0.003
+VARIANTS = ("mesh-all", "mesh", "mesh-seen", "mesh-pca", "render-mesh-normals", "render")
 SEEN_M = 0.005  # a mesh sample this close to a rendered point is on the surface the cameras see
 
 
@@ -67,13 +63,9 @@ class HybridObserver:
     def __init__(self, variant: str, render):
         self.variant, self.render, self.mesh = variant, render, MeshObserver()
         self.name = variant
-        self.rng = np.random.default_rng(0)
 
     def segmented_clouds(self, scene):
         r_p, r_n, r_bg = self.render.segmented_clouds(scene)
-        if self.variant == "render-voxel":
-            keep = voxel_thin(r_p, VOXEL_M, self.rng)
-            return r_p[keep], r_n[keep], r_bg
         m_p, m_n, m_bg = self.mesh.segmented_clouds(scene)
         if self.variant == "mesh-pca":
             n = estimate_normals(m_p, NORMAL_K)

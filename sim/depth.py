@@ -215,25 +215,6 @@ def estimate_normals(
     return n.astype(np.float32)
 
 
-def voxel_thin(points: np.ndarray, voxel_m: float, rng: np.random.Generator) -> np.ndarray:
-    """Indices (sorted) of one randomly chosen point per occupied ``voxel_m`` cube of ``points (M, 3)``.
-
-    A fused depth cloud has a point per pixel: a face that three cameras see, or one seen head-on,
-    is several times denser than a side seen at a glancing angle. Mesh samples (the training
-    observation) are uniform over the surface area. One point per voxel makes the density
-    about uniform over the area too, so that a random subset of the cloud weights the surfaces as
-    training does.
-    """
-    p = np.asarray(points, dtype=np.float64)
-    if len(p) == 0:
-        return np.zeros(0, dtype=np.int64)
-    cell = np.floor((p - p.min(axis=0)) / voxel_m).astype(np.int64)  # (M, 3), each < 2**20 in a bin
-    key = (cell[:, 0] << 40) | (cell[:, 1] << 20) | cell[:, 2]
-    order = rng.permutation(len(p))
-    _, first = np.unique(key[order], return_index=True)
-    return np.sort(order[first])
-
-
 def crop_box(points: np.ndarray, low, high) -> np.ndarray:
     """Points (P, 3) inside the axis-aligned box ``[low, high]`` (3,) each, metres."""
     keep = np.all((points >= np.asarray(low)) & (points <= np.asarray(high)), axis=1)

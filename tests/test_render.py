@@ -22,7 +22,6 @@ from sim.depth import (  # noqa: E402
     mask_iou,
     pinhole_intrinsics,
     subtract_background,
-    voxel_thin,
 )
 from sim.render import RenderObserver, render_rgb, segmentation_iou  # noqa: E402
 from sim.video import write_video  # noqa: E402
@@ -258,19 +257,3 @@ def test_mesh_observation_shows_the_surface_the_cameras_render_on_a_flared_bowl(
     recall = float(np.concatenate(covered).mean())
     assert recall > 0.91, recall  # 0.935 here; 0.855 with the tilt test
     rendered.close()
-
-
-def test_voxel_thin_keeps_one_point_per_voxel_and_evens_out_density():
-    """A cloud whose one half is sampled four times as densely as the other: one point per 3 mm cube
-    leaves the two halves with about equal counts, and no two kept points share a voxel."""
-    rng = np.random.default_rng(0)
-    sparse = rng.uniform([0.0, 0.0, 0.0], [0.03, 0.03, 0.003], (400, 3))
-    dense = rng.uniform([0.03, 0.0, 0.0], [0.06, 0.03, 0.003], (1600, 3))
-    cloud = np.concatenate([sparse, dense])
-    keep = voxel_thin(cloud, 0.003, rng)
-    assert np.all(np.diff(keep) > 0)
-    cells = np.floor((cloud[keep] - cloud.min(0)) / 0.003).astype(int)
-    assert len(np.unique(cells, axis=0)) == len(keep)
-    n_sparse, n_dense = int((keep < 400).sum()), int((keep >= 400).sum())
-    assert 0.8 < n_dense / n_sparse < 1.25  # 4:1 before
-    assert len(voxel_thin(np.zeros((0, 3)), 0.003, rng)) == 0
