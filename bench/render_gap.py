@@ -15,6 +15,9 @@ episodes (``hydo eval --seed``'s):
 - ``render-mesh-normals``: the rendered points, each with the exact normal of the nearest mesh
   sample: the rendered points with the training's *normals*;
 - ``render``: the deploy path's observation;
+- ``mesh-render-bg``: the training observation's object samples with the rendered *background*
+  (back-projected bin pixels) instead of the training's fixed grid on the bin's surfaces;
+- ``render-grid-bg``: the deploy path's object points and normals with the training's background grid.
 
 ``mesh`` → ``mesh-seen`` is what the rest of the rendered coverage costs; ``render-mesh-normals`` → ``render`` is what PCA
 normals cost. Per variant: success, per move / flip and per object.
@@ -42,7 +45,6 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 from hydo_cli.envs import make_envs  # noqa: E402
@@ -53,7 +55,16 @@ from sim.atomic import atomic_write_text  # noqa: E402
 from sim.depth import NORMAL_K, estimate_normals  # noqa: E402
 from sim.observe import MeshObserver  # noqa: E402
 
-VARIANTS = ("mesh-all", "mesh", "mesh-seen", "mesh-pca", "render-mesh-normals", "render")
+VARIANTS = (
+    "mesh-all",
+    "mesh",
+    "mesh-seen",
+    "mesh-pca",
+    "render-mesh-normals",
+    "render",
+    "mesh-render-bg",
+    "render-grid-bg",
+)
 SEEN_M = 0.005  # a mesh sample this close to a rendered point is on the surface the cameras see
 
 
@@ -67,6 +78,10 @@ class HybridObserver:
     def segmented_clouds(self, scene):
         r_p, r_n, r_bg = self.render.segmented_clouds(scene)
         m_p, m_n, m_bg = self.mesh.segmented_clouds(scene)
+        if self.variant == "mesh-render-bg":
+            return m_p, m_n, r_bg
+        if self.variant == "render-grid-bg":
+            return r_p, r_n, m_bg
         if self.variant == "mesh-pca":
             n = estimate_normals(m_p, NORMAL_K)
             n[(n * m_n).sum(axis=1) < 0] *= -1  # deploy turns them towards the camera: the outward side

@@ -40,10 +40,11 @@ CASES = {
             "--episodes",
             "1",
             "--variants",
-            "mesh-all,mesh-pca,render-mesh-normals",
+            "mesh-all,mesh-pca,render-mesh-normals,mesh-render-bg,render-grid-bg",
         ],
         lambda d: (
-            set(d) == {"mesh-all", "mesh-pca", "render-mesh-normals", "meta"}
+            set(d)
+            == {"mesh-all", "mesh-pca", "render-mesh-normals", "mesh-render-bg", "render-grid-bg", "meta"}
             and len(d["mesh-all"]["successes"]) == 1
         ),
     ),
