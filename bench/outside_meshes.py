@@ -9,12 +9,14 @@ policy on them and on ``--objects unseen`` with the same episode seed, as
 - ``blob``: convex hulls of 40 points on a random ellipsoid (3–6 cm radii);
 - ``rock``: an icosphere with radial noise, stretched (slightly concave; collides as its hull);
 - ``multi``: two or three boxes, spheres and cylinders joined off-centre (an irregular multi-part
-  body; collides as its hull);
+  body; collides as its pieces);
 - ``household``: scaled-down everyday shapes: a hex nut, a square pyramid, an L-bracket, a
   dumbbell, a bottle, a triangular wedge.
 
-User meshes collide as one convex hull (``sim.objects.load_user_mesh``), so a concave shape here
-pushes like its hull but is observed (and its goal flow computed) on its true surface.
+User meshes collide as one convex part per separate piece of the file (``sim.objects.load_user_mesh``;
+before session 42 as one hull of the whole), so the multi-part bodies, the L-bracket, the dumbbell
+and the bottle push like what they are; a concave single piece (the rocks) pushes like its hull
+but is observed (and its goal flow computed) on its true surface.
 
 Usage::
 

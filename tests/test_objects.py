@@ -234,3 +234,24 @@ def test_missing_and_empty_folder(tmp_path):
     assert str(tmp_path) in str(e.value)
     with pytest.raises(ObjectMeshError, match="not found"):
         load_objects(str(tmp_path / "missing.obj"))
+
+
+def test_user_mesh_of_separate_pieces_collides_as_the_pieces(tmp_path):
+    """An L-bracket modelled as two boxes (two connected pieces in one file) gets one convex part
+    per box: the inner corner of the L, inside the hull of the whole, is inside neither part, so
+    the simulator leaves it empty as a real bracket does. A one-piece mesh keeps one hull."""
+    import trimesh
+
+    plate = trimesh.creation.box((0.09, 0.03, 0.02))
+    upright = trimesh.creation.box((0.02, 0.03, 0.06)).apply_translation((0.035, 0.0, 0.04))
+    f = tmp_path / "l_bracket.obj"
+    trimesh.util.concatenate([plate, upright]).export(str(f))
+    (o,) = load_objects(str(f))
+    assert len(o.parts) == 2
+    assert sorted(len(p) for p in o.parts) == [8, 8]  # two boxes' corners
+    lo = np.min([p.min(0) for p in o.parts], axis=0)  # the frame is re-centred: place it from the parts
+    corner = lo + np.array([0.03, 0.015, 0.03])  # 1 cm above the plate, 4 cm left of the upright
+    assert all(_plane_dist(corner[None], p)[0] > 0.005 for p in o.parts)  # outside both boxes
+    assert _plane_dist(corner[None], np.concatenate(o.parts))[0] < 0  # inside the hull of the whole
+    # every surface sample lies on one of the parts (within a hair)
+    assert np.min([_plane_dist(o.surface_points, p) for p in o.parts], axis=0).max() < 1e-6
