@@ -98,7 +98,10 @@ def goal_kind_breakdown(results: Sequence) -> dict[str, dict]:
     """Success by what the goal asks: ``move`` (same face up: translate and yaw) or ``flip`` (another
     face up, ``goal_tilt_deg`` ≥ FLIP_TILT_DEG), with the episodes' start and final distances (m).
     ``flip`` is split again into ``flip_side`` (tilt under FLIP_OVER_DEG: onto a side) and
-    ``flip_over`` (turned over); a kind without episodes has no row."""
+    ``flip_over`` (turned over); a kind without episodes has no row. ``force_stops_success`` /
+    ``force_stops_failed``: primitives per episode that the hand's contact-force stop ended
+    (``sim.primitive.FORCE_STOP_N``), in the kind's successes and failures (None without any): where
+    failed flips press harder than the stop allows."""
     out = {}
     kinds = {
         "move": lambda t: t < FLIP_TILT_DEG,
@@ -116,6 +119,13 @@ def goal_kind_breakdown(results: Sequence) -> dict[str, dict]:
             "success_rate": float(np.mean([r.success for r in rs])),
             "mean_start_distance_m": float(np.mean([r.start_distance for r in rs])),
             "median_failed_final_distance_m": float(np.median(failed)) if failed else None,
+            **{
+                f"force_stops_{name}": float(np.mean([r.force_stops for r in group])) if group else None
+                for name, group in (
+                    ("success", [r for r in rs if r.success]),
+                    ("failed", [r for r in rs if not r.success]),
+                )
+            },
         }
     return out
 

@@ -42,13 +42,13 @@ def test_failure_reasons_count_timeouts_with_refused_primitives_twice():
 
 
 def test_goal_kinds_split_moves_from_flips_at_30_degrees():
-    def tilted(success, tilt, final):
+    def tilted(success, tilt, final, force_stops=0):
         return EpisodeResult(
-            "cube", success, 3, -0.1, final, 0, "" if success else "timeout", None, 0.2, tilt
+            "cube", success, 3, -0.1, final, 0, "" if success else "timeout", None, 0.2, tilt, force_stops
         )
 
     results = [tilted(True, 0.0, 0.01), tilted(False, 29.0, 0.05), tilted(True, 90.0, 0.02)]
-    results += [tilted(False, 180.0, 0.08), tilted(False, 90.0, 0.12)]
+    results += [tilted(False, 180.0, 0.08, force_stops=3), tilted(False, 90.0, 0.12, force_stops=1)]
     kinds = goal_kind_breakdown(results)
     assert kinds["move"]["episodes"] == 2 and kinds["move"]["success_rate"] == 0.5
     assert kinds["flip"]["episodes"] == 3 and kinds["flip"]["success_rate"] == 1 / 3
@@ -56,6 +56,8 @@ def test_goal_kinds_split_moves_from_flips_at_30_degrees():
     assert kinds["move"]["mean_start_distance_m"] == pytest.approx(0.2)
     assert kinds["flip_side"]["episodes"] == 2 and kinds["flip_side"]["success_rate"] == 0.5
     assert kinds["flip_over"]["episodes"] == 1 and kinds["flip_over"]["success_rate"] == 0.0
+    assert kinds["flip"]["force_stops_failed"] == 2.0 and kinds["flip"]["force_stops_success"] == 0.0
+    assert kinds["flip_over"]["force_stops_success"] is None  # no success to average over
     assert set(goal_kind_breakdown(results[:1])) == {"move"}  # planar goals: no flip row
 
 
