@@ -18,7 +18,8 @@ ObjectsOpt = Annotated[
     typer.Option(
         "--objects",
         help="Object set: train | unseen-instance | unseen-category | unseen | all | cube | train-wide "
-        "(train plus 64 more instances of its categories) | an object name | a folder of .obj/.stl meshes.",
+        "(train plus 64 more instances of its categories) | train-varied (train-wide plus 32 irregular "
+        "polyhedra and stepped blocks) | an object name | a folder of .obj/.stl meshes.",
     ),
 ]
 GoalsOpt = Annotated[Goals, typer.Option("--goals", help="Goal mode: planar (translation only) or 6d.")]

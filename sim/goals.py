@@ -22,7 +22,14 @@ import numpy as np
 
 from sim.atomic import atomic_write
 from sim.contract import pose_matrix, symmetric_goal, transform_points
-from sim.objects import ObjectAsset, builtin_objects, cache_root, extra_train_objects, geometry_hash
+from sim.objects import (
+    ObjectAsset,
+    builtin_objects,
+    cache_root,
+    extra_train_objects,
+    geometry_hash,
+    varied_train_objects,
+)
 from sim.primitive import BIN_INNER_SIZE_M
 from sim.symmetry import symmetries
 
@@ -226,7 +233,7 @@ def sample_episode(assets, goal_mode: str, rng: np.random.Generator, poses: dict
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m sim.goals``: compute the shipped stable poses of every built-in and ``train-extra``
+    """``python -m sim.goals``: compute the shipped stable poses of every built-in, ``train-extra`` and ``train-varied``
     object missing from the shipped file (``--recompute``: all of them; deterministic, ~1 s per
     object; entries already shipped are kept, so the episodes behind earlier figures do not move
     with another CPU's rounding); ``python -m sim.goals MESH_OR_FOLDER ...``: compute and cache those of
@@ -246,7 +253,7 @@ def main(argv: list[str] | None = None) -> None:
         if args.meshes:
             assets = [a for spec in args.meshes for a in load_objects(spec)]
         else:
-            assets = list(builtin_objects()) + list(extra_train_objects())
+            assets = list(builtin_objects() + extra_train_objects() + varied_train_objects())
     except (ValueError, ObjectMeshError) as e:  # a bad path or mesh: one line, no traceback
         ap.exit(1, f"python -m sim.goals: error: {e}\n")
     shipped = {} if args.recompute or not SHIPPED_FILE.exists() else dict(np.load(SHIPPED_FILE))

@@ -37,7 +37,10 @@ split                     categories (instances)
 ``train-extra`` (64, built on first use by :func:`extra_train_objects`, not in ``all``): instances
 ``_05..12`` of each training category, for training on more shapes of the same categories
 (``--objects train-wide`` = ``train`` + ``train-extra``); no category is added, so the unseen splits
-stay unseen.
+stay unseen. ``train-varied`` (:func:`varied_train_objects`, not in ``all``): 16 irregular convex
+``polyhedron`` and 16 stepped multi-box ``blocks`` bodies, categories of their own that no evaluated
+split holds (``--objects train-varied`` = ``train-wide`` + these): more kinds of shape for a policy
+meant for meshes a user brings.
 
 The special spec ``cube`` is a 6 cm cube named ``cube``; it **is also part of** ``train`` (category
 ``box``), so a policy trained on ``train`` has seen it.
@@ -64,6 +67,8 @@ SPLITS = ("train", "unseen-instance", "unseen-category")
 #: ``train-extra``: more instances of the training categories, for training only (never evaluated
 #: as a split of Table I); ``train-wide``: ``train`` and ``train-extra`` together.
 EXTRA_SPLIT = "train-extra"
+#: ``train-varied``: ``train-wide`` plus ``VARIED_CATEGORIES`` (split ``train-varied``), training only.
+VARIED_SPLIT = "train-varied"
 SPEC_CHOICES = (
     "train",
     "unseen-instance",
@@ -73,6 +78,7 @@ SPEC_CHOICES = (
     "cube",
     EXTRA_SPLIT,
     "train-wide",
+    "train-varied",
 )
 
 N_SURFACE_SAMPLES = 2048  # surface samples per object
@@ -376,6 +382,31 @@ def _gen_wedge(rng):  # a triangular prism resting on its long rectangular face
     return [np.array([[x, y, z] for y in (0.0, W) for x, z in tri])]
 
 
+def _gen_polyhedron(rng):  # an irregular convex body: the hull of 10-24 points on a dented, stretched shell
+    n = int(rng.integers(10, 25))
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    p = d * rng.uniform(0.75, 1.0, (n, 1)) * rng.uniform(0.5, 1.0, 3)
+    return [p * rng.uniform(0.065, 0.11) / np.ptp(p, axis=0).max()]  # largest extent 6.5-11 cm
+
+
+def _gen_blocks(rng):  # 2-3 boxes of random proportions, each on a face of the one before: steps, Ls, Ts
+    lo, hi = np.zeros(3), rng.uniform([0.04, 0.03, 0.02], [0.09, 0.07, 0.05])
+    parts = [_box(lo, hi)]
+    for _ in range(int(rng.integers(1, 3))):
+        axis, up = int(rng.integers(3)), bool(rng.integers(2))  # the face of the last box to build on
+        size = rng.uniform(0.02, 0.05, 3)
+        new_lo = np.empty(3)
+        for k in range(3):
+            if k == axis:
+                new_lo[k] = hi[k] if up else lo[k] - size[k]
+            else:  # anywhere along the face that keeps at least 1 cm of contact
+                new_lo[k] = rng.uniform(lo[k] - size[k] + 0.01, hi[k] - 0.01)
+        lo, hi = new_lo, new_lo + size
+        parts.append(_box(lo, hi))
+    return parts
+
+
 _Generator = Callable[[np.random.Generator], list[np.ndarray]]
 
 #: Training categories: instances _00.._03 are ``train``, _04 is ``unseen-instance``.
@@ -398,6 +429,10 @@ UNSEEN_CATEGORIES: dict[str, _Generator] = {
     "cross": _gen_cross,
     "wedge": _gen_wedge,
 }
+#: Shapes outside the evaluated categories, for training only (``train-varied``): irregular convex
+#: bodies and stepped multi-box bodies, so that a policy sees more than the eight regular families.
+VARIED_CATEGORIES: dict[str, _Generator] = {"polyhedron": _gen_polyhedron, "blocks": _gen_blocks}
+N_VARIED_INSTANCES = 16
 N_TRAIN_INSTANCES, N_UNSEEN_INSTANCES, N_UNSEEN_CATEGORY_INSTANCES = 4, 1, 2
 #: ``train-extra`` instances per training category: ``_05`` onwards (``_04`` stays unseen-instance).
 N_EXTRA_TRAIN_INSTANCES = 8
@@ -486,6 +521,17 @@ def extra_train_objects() -> tuple[ObjectAsset, ...]:
     )
 
 
+@functools.cache
+def varied_train_objects() -> tuple[ObjectAsset, ...]:
+    """The shapes of ``VARIED_CATEGORIES`` (``N_VARIED_INSTANCES`` of each, split ``train-varied``),
+    built on first use; never in ``all`` or an evaluated split, so nothing evaluated is trained on."""
+    return tuple(
+        _make_asset(name, cat, VARIED_SPLIT, gen(np.random.default_rng([_seed(name), 0])))
+        for cat, gen in VARIED_CATEGORIES.items()
+        for name in (f"{cat}_{i:02d}" for i in range(N_VARIED_INSTANCES))
+    )
+
+
 def _is_extra_name(s: str) -> bool:
     cat, _, num = s.rpartition("_")
     first = N_TRAIN_INSTANCES + N_UNSEEN_INSTANCES
@@ -514,11 +560,16 @@ def load_objects(spec: str | Path) -> tuple[ObjectAsset, ...]:
         return extra_train_objects()
     if s == "train-wide":
         return tuple(o for o in objs if o.split == "train") + extra_train_objects()
+    if s == VARIED_SPLIT:
+        return load_objects("train-wide") + varied_train_objects()
     by_name = {o.name: o for o in objs}  # includes "cube"
     if s in by_name:
         return (by_name[s],)
     if _is_extra_name(s):
         return tuple(o for o in extra_train_objects() if o.name == s)
+    if s.rpartition("_")[0] in VARIED_CATEGORIES:
+        if found := tuple(o for o in varied_train_objects() if o.name == s):
+            return found
     path = Path(spec)
     if path.is_dir():
         files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)

@@ -27,7 +27,14 @@ from pathlib import Path
 import numpy as np
 
 from sim.atomic import atomic_write
-from sim.objects import ObjectAsset, builtin_objects, cache_root, extra_train_objects, geometry_hash
+from sim.objects import (
+    ObjectAsset,
+    builtin_objects,
+    cache_root,
+    extra_train_objects,
+    geometry_hash,
+    varied_train_objects,
+)
 
 SHIPPED_FILE = Path(__file__).parent / "assets" / "symmetries.npz"  # `python -m sim.symmetry`
 
@@ -125,15 +132,15 @@ def symmetries(asset: ObjectAsset) -> np.ndarray:
 
 
 def main() -> None:
-    """``python -m sim.symmetry``: the shipped symmetries of every built-in and ``train-extra``
-    object (entries already shipped are kept; ``--recompute`` recomputes them)."""
+    """``python -m sim.symmetry``: the shipped symmetries of every built-in, ``train-extra`` and
+    ``train-varied`` object (entries already shipped are kept; ``--recompute`` recomputes them)."""
     import sys
 
     shipped = (
         {} if "--recompute" in sys.argv[1:] or not SHIPPED_FILE.exists() else dict(np.load(SHIPPED_FILE))
     )
     arrays = {}
-    for asset in builtin_objects() + extra_train_objects():
+    for asset in builtin_objects() + extra_train_objects() + varied_train_objects():
         key = f"{asset.name}-{geometry_hash(asset)}"
         arrays[key] = shipped[key] if key in shipped else find_symmetries(asset.surface_points)
         print(f"{asset.name}: {len(arrays[key])} symmetries")

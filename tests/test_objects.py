@@ -82,6 +82,33 @@ def test_train_extra_adds_instances_of_training_categories_only(objs, tmp_path, 
     assert not any(tmp_path.iterdir())
 
 
+def test_train_varied_adds_shapes_outside_every_evaluated_category(objs, tmp_path, monkeypatch):
+    """``train-varied`` is ``train-wide`` plus irregular convex bodies and stepped multi-box bodies
+    (``VARIED_CATEGORIES``): new categories, for training only, never part of ``all`` or an unseen
+    split; sized like the built-ins; their stable poses and symmetries ship."""
+    from sim.objects import VARIED_CATEGORIES
+
+    varied = load_objects("train-varied")
+    wide = load_objects("train-wide")
+    new = varied[len(wide) :]
+    assert [o.name for o in varied[: len(wide)]] == [o.name for o in wide]
+    assert len(new) == 32 and all(o.split == "train-varied" for o in new)
+    assert {o.category for o in new} == set(VARIED_CATEGORIES)
+    assert set(VARIED_CATEGORIES).isdisjoint(o.category for o in objs)  # not in `all`, nor evaluated
+    assert any(len(o.parts) > 1 for o in new) and any(len(o.parts) == 1 for o in new)
+    for o in new:
+        assert 0.06 - 1e-9 <= o.extents.max() <= 0.13 and o.extents.min() >= 0.02 - 1e-9, o.name
+    (blocks,) = load_objects("blocks_03")
+    assert blocks.category == "blocks"
+    from sim.goals import stable_poses
+    from sim.symmetry import symmetries
+
+    monkeypatch.setenv("HYDO_CACHE", str(tmp_path))
+    for o in new:
+        assert stable_poses(o).shape == (100, 5) and symmetries(o).shape[1:] == (4, 4)
+    assert not any(tmp_path.iterdir())
+
+
 def test_cube_and_single_names(objs):
     (cube,) = load_objects("cube")
     assert cube.name == "cube"
