@@ -84,10 +84,8 @@ def test_every_bench_script_has_a_smoke_case():
     assert sorted(p.name for p in (ROOT / "bench").glob("[!_]*.py")) == sorted(CASES)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("script", sorted(CASES))
-def test_bench_script_runs(script, tmp_path):
-    args, check = CASES[script]
+def _run_bench(script: str, args: list[str], tmp_path) -> dict:
+    """Run ``bench/<script> ARGS --json FILE`` in ``tmp_path``; its JSON, once it exited 0 cleanly."""
     out = tmp_path / "bench.json"
     r = subprocess.run(
         [sys.executable, str(ROOT / "bench" / script), *args, "--json", str(out)],
@@ -98,7 +96,14 @@ def test_bench_script_runs(script, tmp_path):
     )
     assert r.returncode == 0, r.stderr[-2000:]
     assert "Traceback" not in r.stderr
-    data = json.loads(out.read_text())
+    return json.loads(out.read_text())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", sorted(CASES))
+def test_bench_script_runs(script, tmp_path):
+    args, check = CASES[script]
+    data = _run_bench(script, args, tmp_path)
     assert data and check(data), data
 
 
@@ -107,16 +112,7 @@ def test_trainer_bench_against_a_baseline_commit(tmp_path):
     """``bench/trainer.py --baseline REV`` runs REV's loop (a temporary git worktree, removed again)
     beside this tree's and reports sample-gradients/h for both."""
     args, _ = CASES["trainer.py"]
-    out = tmp_path / "bench.json"
-    r = subprocess.run(
-        [sys.executable, str(ROOT / "bench" / "trainer.py"), *args, "--baseline", "HEAD", "--json", str(out)],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=240,
-    )
-    assert r.returncode == 0, r.stderr[-2000:]
-    data = json.loads(out.read_text())
+    data = _run_bench("trainer.py", [*args, "--baseline", "HEAD"], tmp_path)
     assert set(data["runs"]) == {"baseline", "default"} and data["meta"]["baseline"] == "HEAD"
     for name in ("baseline", "default"):
         row = data[name]
@@ -130,18 +126,8 @@ def test_trainer_bench_against_a_baseline_commit(tmp_path):
 def test_learner_bench_compares_with_a_baseline_commit(tmp_path):
     """``bench/learner.py --baseline REV`` runs REV's bench and this one alternately and reports the
     ratio of their update rates (here REV = HEAD, whose code is this tree's as committed)."""
-    out = tmp_path / "bench.json"
     args = ["--algos", "hydo-cm", "--seconds", "1", "--threads", "1", "--set", "n_obj=16", "--set", "n_bg=16"]
-    r = subprocess.run(
-        [sys.executable, str(ROOT / "bench" / "learner.py"), *args, "--baseline", "HEAD", "--repeats", "1"]
-        + ["--json", str(out)],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=240,
-    )
-    assert r.returncode == 0, r.stderr[-2000:]
-    data = json.loads(out.read_text())
+    data = _run_bench("learner.py", [*args, "--baseline", "HEAD", "--repeats", "1"], tmp_path)
     assert [run["side"] for run in data["runs"]] == ["baseline", "current"]
     assert data["speedup"]["hydo-cm"] == pytest.approx(
         data["current"]["hydo-cm"] / data["baseline"]["hydo-cm"]

@@ -72,12 +72,16 @@ def test_train_extra_adds_instances_of_training_categories_only(objs, tmp_path, 
         assert 0.06 - 1e-9 <= o.extents.max() <= 0.13 and o.extents.min() >= 0.02 - 1e-9, o.name
     (mug,) = load_objects("mug_07")
     assert mug.split == "train-extra"
-    # Their stable poses and symmetries ship: an empty cache directory is never written to.
+    _assert_poses_and_symmetries_ship(extra, tmp_path, monkeypatch)
+
+
+def _assert_poses_and_symmetries_ship(assets, tmp_path, monkeypatch):
+    """The stable poses and symmetries of ``assets`` ship: an empty cache directory is never written to."""
     from sim.goals import stable_poses
     from sim.symmetry import symmetries
 
     monkeypatch.setenv("HYDO_CACHE", str(tmp_path))
-    for o in extra:
+    for o in assets:
         assert stable_poses(o).shape == (100, 5) and symmetries(o).shape[1:] == (4, 4)
     assert not any(tmp_path.iterdir())
 
@@ -100,13 +104,7 @@ def test_train_varied_adds_shapes_outside_every_evaluated_category(objs, tmp_pat
         assert 0.06 - 1e-9 <= o.extents.max() <= 0.13 and o.extents.min() >= 0.02 - 1e-9, o.name
     (blocks,) = load_objects("blocks_03")
     assert blocks.category == "blocks"
-    from sim.goals import stable_poses
-    from sim.symmetry import symmetries
-
-    monkeypatch.setenv("HYDO_CACHE", str(tmp_path))
-    for o in new:
-        assert stable_poses(o).shape == (100, 5) and symmetries(o).shape[1:] == (4, 4)
-    assert not any(tmp_path.iterdir())
+    _assert_poses_and_symmetries_ship(new, tmp_path, monkeypatch)
 
 
 def test_cube_and_single_names(objs):
