@@ -658,11 +658,11 @@ def _user_parts(mesh, hull: _Hull, centre: np.ndarray) -> list[_Hull]:
     if 1 < len(pieces) <= USER_MAX_PARTS:
         for piece in pieces:
             try:
-                h = _hull(np.asarray(piece.vertices, dtype=np.float64) - centre)
+                h = _thinned_hull(np.asarray(piece.vertices, dtype=np.float64) - centre)
             except QhullError:  # a flat or degenerate piece (a stray triangle): nothing to collide
                 continue
             if h.volume >= 1e-9:
-                parts.append(_thinned_hull(h.vertices))
+                parts.append(h)
     return parts if len(parts) > 1 else [_thinned_hull(hull.vertices - centre)]
 
 
