@@ -20,7 +20,8 @@ goal. This bench re-runs ``Registration.verdict`` of the current code on each lo
   change), so an earlier stop's outcome is the truth at that step; an episode it would carry on past
   the session's own stop is ``unknown``. With ``--success-coverage 0 --success-inliers 0`` this is
   the verdict before those two checks, replayed on a session of the current code: the same episodes,
-  the difference the checks make.
+  the difference the checks make. ``false_success``: the replayed stops that claim a success the
+  truth does not back (the verdict's disagreements with the truth, among the failures).
 
 Usage::
 
@@ -129,7 +130,11 @@ def main() -> None:
                 ]
                 first = claims[0] if claims else None
                 if first is not None and first["step"] < steps[-1]["step"]:
-                    replayed["success" if first["true_distance_m"] < thr else "failure"] += 1
+                    if first["true_distance_m"] < thr:
+                        replayed["success"] += 1
+                    else:  # a claim the truth does not back: a false success, a failure by the truth
+                        replayed["failure"] += 1
+                        replayed["false_success"] += 1
                 elif (
                     first is None
                     and end.get("cause") in ("success", "ambiguous")
@@ -138,6 +143,9 @@ def main() -> None:
                     replayed["unknown"] += 1  # it would have acted again where the session stopped
                 else:
                     replayed["success" if end.get("true_success") else "failure"] += 1
+                    last_claim = _registration(steps[-1]["registration"]).verdict(thr, args.margin)
+                    if last_claim == "success" and not end.get("true_success"):
+                        replayed["false_success"] += 1  # the session's own end, claimed and not true
             if end is not None and end.get("cause") in ("success", "ambiguous"):
                 last = steps[-1]
                 now = _registration(last["registration"]).verdict(thr, args.margin)
@@ -152,6 +160,7 @@ def main() -> None:
             "either_under": sum(c < cov or i < inl for c, i in rows),
         }
 
+    n_replayed = replayed["success"] + replayed["failure"] + replayed["unknown"]
     cov_min, inl_min = registration.SUCCESS_COVERAGE_MIN, registration.SUCCESS_INLIERS_MIN
     results = {
         "verdicts": {
@@ -167,7 +176,7 @@ def main() -> None:
         "stops": dict(sorted(stops.items())),
         "replayed": {
             **dict(replayed),
-            "success_rate": replayed["success"] / max(1, sum(replayed.values())),
+            "success_rate": replayed["success"] / max(1, n_replayed),
         },
     }
     print(f"verdict vs truth, {len(args.sessions)} session(s), margin {args.margin * 1000:.1f} mm")
@@ -187,7 +196,7 @@ def main() -> None:
     r = results["replayed"]
     print(
         f"replayed with this verdict: success {r['success_rate']:.0%} ({r.get('success', 0)} of "
-        f"{sum(replayed.values())}; {r.get('unknown', 0)} unknown)"
+        f"{n_replayed}; {r.get('unknown', 0)} unknown; {r.get('false_success', 0)} of the failures false successes)"
     )
     if args.json:
         meta = {"command": " ".join(sys.argv), "python": platform.python_version()}

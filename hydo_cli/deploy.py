@@ -335,9 +335,10 @@ def ladder_cmd(
     rungs: Annotated[
         str,
         typer.Option(
-            "--rungs", help="Comma-separated rungs: env, env-render, twin-true, twin (default: all)."
+            "--rungs",
+            help="Comma-separated rungs: env, env-render, twin-true, twin-cameras, twin (default: all).",
         ),
-    ] = "env,env-render,twin-true,twin",
+    ] = "env,env-render,twin-true,twin-cameras,twin",
     objects: Annotated[
         str | None, typer.Option("--objects", help="Object set (default: the model's training objects).")
     ] = None,
@@ -354,9 +355,10 @@ def ladder_cmd(
 ) -> None:
     """Where a policy's success is lost between training and the cell: the sim → twin ladder.
 
-    Runs one exported model on the same episodes on four rungs, each adding one difference: the
+    Runs one exported model on the same episodes on five rungs, each adding one difference: the
     training env (mesh observations), the training env with rendered depth, the twin's full arm with
-    true-pose observations, the twin with cameras + segmentation + registration. Prints success, mean
+    true-pose observations, the twin observed through its cameras (true poses for the goal flow), the
+    twin with cameras + segmentation + registration. Prints success, mean
     final distance and failure causes per rung, and scores the deploy loop's verdict against the truth.
 
     Examples:

@@ -1,6 +1,6 @@
 """The sim → twin ladder (``hydo deploy ladder``): where an exported policy's success is lost.
 
-One model runs the same episodes (``sim.goals.episode_seed``: same object, start and goal) on four
+One model runs the same episodes (``sim.goals.episode_seed``: same object, start and goal) on five
 rungs, each adding one difference between training and the robot cell:
 
 =============  ===============================================================================
@@ -9,6 +9,8 @@ rungs, each adding one difference between training and the robot cell:
 ``env-render`` the training env with rendered depth, background subtraction and PCA normals
 ``twin-true``  the twin of the cell (``robot.twin``): the full arm and its impedance controller,
                force stop and reflexes, observed through the true pose and mesh (as in training)
+``twin-cameras`` the twin observed through its cameras and segmentation (the deploy cloud and its
+               PCA normals), with the true transform to the goal in place of registration
 ``twin``       the twin with the full deploy pipeline: cameras, segmentation, registration
 =============  ===============================================================================
 
@@ -36,6 +38,7 @@ RUNGS = {
     "env": "training env: floating hand, mesh observations",
     "env-render": "training env: rendered depth + PCA normals",
     "twin-true": "twin: full arm, true pose and mesh",
+    "twin-cameras": "twin: full arm, cameras + segmentation, true pose for the goal flow",
     "twin": "twin: full arm, cameras + segmentation + registration",
 }
 NEAR_MISS_M = 0.045  # a step-limit episode that ended within 3-4.5 cm of the goal is a near miss
@@ -156,7 +159,7 @@ def run_twin_rung(rung: str, model: Path, n: int, seed: int, objects: str, log_d
         seed=seed,
         log_dir=log_dir,
         objects=objects,
-        perception="true" if rung == "twin-true" else "cameras",
+        perception={"twin-true": "true", "twin-cameras": "cameras-true-pose"}.get(rung, "cameras"),
         command=f"hydo deploy ladder (rung {rung})",
     )
     res = Deployment.prepare(cfg).run()

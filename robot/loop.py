@@ -74,7 +74,7 @@ from sim.observe import bin_background_points, camera_visible_surface
 from sim.primitive import PrimitiveRejected, feasibility_mask
 
 ROBOTS = ("panda", "fr3", "sim")
-PERCEPTIONS = ("cameras", "true")
+PERCEPTIONS = ("cameras", "cameras-true-pose", "true")
 #: Refusals: bad input that stops nothing physical. Robot and camera failures are never refusals.
 REFUSALS = (PerceptionError, RegistrationError, InputError, PrimitiveRejected, UnreachableError)
 RECAPTURE_WAIT_S = 0.5
@@ -103,7 +103,10 @@ class DeployConfig:
     speed_scale: float = 1.0  # in (0, 1]: every command slower than the cell's speeds by this factor
     # "cameras": depth cameras, segmentation and registration; "true" (twin only): the object's true
     # pose and mesh instead, observed as in training (``sim.observe``), so that what remains between
-    # the training env and the twin is the arm and its controller (``hydo deploy ladder``)
+    # the training env and the twin is the arm and its controller (``hydo deploy ladder``);
+    # "cameras-true-pose" (twin only): the cameras' segmented cloud, with the true transform to the
+    # goal in place of registration, so that the ladder tells what the cloud costs from what
+    # registration does
     perception: str = "cameras"
     command: str = ""
 
@@ -174,7 +177,7 @@ class Deployment:
             raise ValueError(f"`--robot` must be one of {list(ROBOTS)}. Got {cfg.robot!r}.")
         if cfg.perception not in PERCEPTIONS:
             raise ValueError(f"`perception` must be one of {list(PERCEPTIONS)}. Got {cfg.perception!r}.")
-        if cfg.perception == "true" and (
+        if cfg.perception != "cameras" and (
             cfg.robot != "sim"
             or cfg.replay is not None
             or cfg.goal is not None
@@ -359,16 +362,18 @@ class Deployment:
                     seg, reg = self._true_perception()
                 else:
                     seg = segment(frames, self.background, self.cell, self.rng)
+                    if cfg.perception == "cameras-true-pose":
+                        reg = self._true_registration()
                 t_perc = time.perf_counter() - t0
                 if (
-                    goal is None and cfg.perception != "true"
+                    goal is None and cfg.perception == "cameras"
                 ):  # --goal-offset: the goal is the first cloud of the episode, moved
                     goal = goal_from_offset(seg.obj_points, *cfg.goal_offset)
                     # before any motion of the episode: a goal outside the bin stops the run
                     check_goal(self.cell, goal.points, f"--goal-offset {_offset_text(cfg.goal_offset)}")
                     goal.save(self.log.folder / "goals" / f"e{ep:03d}.npz")
                     self.log.event("goal_from_offset", episode=ep, offset=list(cfg.goal_offset))
-                if cfg.perception != "true":
+                if cfg.perception == "cameras":
                     reg, widened = register_checked(
                         seg.obj_points,
                         goal.points,
@@ -415,7 +420,7 @@ class Deployment:
                 # handle the fit put elsewhere) are not claimed: the policy acts again on the
                 # registration's flow, and the push changes the view. Most such stops were short of
                 # the goal (docs/results.md). At the step limit either is reported as ambiguous.
-                margin = 0.0 if cfg.perception == "true" else self.cell.perception.success_margin
+                margin = self.cell.perception.success_margin if cfg.perception == "cameras" else 0.0
                 last_verdict = reg.verdict(SUCCESS_THRESHOLD_M, margin)
                 if last_verdict == "success" or step == cfg.max_steps:
                     if last_verdict == "uncertain":
@@ -636,9 +641,8 @@ class Deployment:
         """Twin only (``perception="true"``): the training env's observation of the true scene.
 
         The object's mesh-surface samples at its true pose that the cell's cameras see and the bin's
-        background grid (``sim.observe``, in the bin frame, moved to the cell's bin), and the exact
-        transform to the true goal pose in place of a registration (zero residual, distance = the
-        true distance)."""
+        background grid (``sim.observe``, in the bin frame, moved to the cell's bin), and
+        :meth:`_true_registration` in place of a registration."""
         w = self.world
         T_obj = w.object_T()
         to_bin = np.eye(4)
@@ -654,9 +658,17 @@ class Deployment:
             masks,
             [0.0] * len(masks),
         )
+        return seg, self._true_registration()
+
+    def _true_registration(self) -> Registration:
+        """Twin only: the exact transform from the true pose to the nearest true goal pose (up to the
+        object's symmetry) as a registration: zero residual, every point an inlier, distance = the
+        true distance."""
+        w = self.world
+        T_obj = w.object_T()
         T_goal = nearest_true_goal(w, self._true_goal_T if self._true_goal_T is not None else T_obj)
         d = true_distance(w, T_goal)
-        return seg, Registration(T_goal @ np.linalg.inv(T_obj), 0.0, 1.0, d, 0.0)
+        return Registration(T_goal @ np.linalg.inv(T_obj), 0.0, 1.0, d, 0.0)
 
     def _twin_metrics(self, rec: StepRecord, seg, reg) -> None:
         """Twin only: the step's mask IoU, registration error and true distance (``robot.twin_metrics``)."""

@@ -27,7 +27,12 @@ CASES = {
     "sim.py": (["--seconds", "1"], lambda d: d["mesh_steps_per_s"] > 0),
     "verdict.py": (
         [str(TWIN_SESSION)],
-        lambda d: d["stops"] == {"success (false) -> uncertain": 1, "success (true) -> success": 2},
+        lambda d: (
+            d["stops"] == {"success (false) -> uncertain": 1, "success (true) -> success": 2}
+            # episode 0's false claim came at the step limit, where the current verdict reports it
+            # ambiguous: a failure by the truth, and no longer a false success
+            and d["replayed"] == {"success": 2, "failure": 1, "success_rate": pytest.approx(2 / 3)}
+        ),
     ),
     "registration.py": (
         ["--episodes", "2"],

@@ -141,6 +141,31 @@ def test_true_perception_observes_the_twin_like_the_training_env(tiny_model, tmp
     env.close()
 
 
+def test_cameras_true_pose_perception_observes_through_the_cameras_and_flows_by_the_truth(tiny_model, tmp_path):
+    """``perception="cameras-true-pose"`` (the ladder's ``twin-cameras`` rung): the segmented camera
+    cloud, not the mesh samples (IoU under 1), with the exact transform to the true goal in place of
+    registration: the loop's distance is the true one, so its verdict is the true one."""
+    dep = Deployment.prepare(
+        DeployConfig(
+            robot="sim",
+            model=tiny_model,
+            episodes=2,
+            max_steps=2,
+            seed=5,
+            perception="cameras-true-pose",
+            log_dir=tmp_path / "s",
+        )
+    )
+    res = dep.run()
+    s = res.summary()
+    assert s["mean_iou"] < 0.999 and s["mean_registration_error_m"] < 0.001
+    for e in res.episodes:
+        assert e.success == e.true_success and e.distance == pytest.approx(e.true_distance, abs=1e-6)
+    observed = [e for e in read_log(tmp_path / "s") if e["event"] == "observation"]
+    assert observed and all(e["registration"]["rmse_m"] == 0.0 for e in observed)
+    assert not any(e["event"] == "registration_widened" for e in read_log(tmp_path / "s"))
+
+
 def test_a_twin_episode_does_not_depend_on_how_long_the_one_before_ran(tiny_model, tmp_path):
     """Episode 1 sees the same clouds whether episode 0 ran one step or three: each twin episode's
     depth noise and samples are drawn from (seed, episode), so two code versions that end episode 0
@@ -171,6 +196,16 @@ def test_true_perception_exists_only_in_the_twin(tiny_model, tmp_path):
                 perception="true",
                 goal_offset=(0.1, 0, 0),
                 log_dir=tmp_path / "a",
+            )
+        )
+    with pytest.raises(InputError, match="only in the twin"):
+        Deployment.prepare(
+            DeployConfig(
+                robot="sim",
+                model=tiny_model,
+                perception="cameras-true-pose",
+                goal_offset=(0.1, 0, 0),
+                log_dir=tmp_path / "c",
             )
         )
     with pytest.raises(ValueError, match="perception"):
@@ -221,4 +256,5 @@ def test_ladder_command_runs_the_same_episodes_on_each_rung(tiny_model, tmp_path
     assert objects[0] == objects[1]
 
     bad = CliRunner().invoke(app, ["deploy", "ladder", "--model", str(tiny_model), "--rungs", "sim"])
-    assert bad.exit_code == 2 and "rungs are env, env-render, twin-true, twin" in bad.output
+    said = " ".join(bad.output.replace("│", " ").split())  # the message as one line, out of its box
+    assert bad.exit_code == 2 and "rungs are env, env-render, twin-true, twin-cameras, twin" in said
