@@ -141,7 +141,9 @@ def test_true_perception_observes_the_twin_like_the_training_env(tiny_model, tmp
     env.close()
 
 
-def test_cameras_true_pose_perception_observes_through_the_cameras_and_flows_by_the_truth(tiny_model, tmp_path):
+def test_cameras_true_pose_perception_observes_through_the_cameras_and_flows_by_the_truth(
+    tiny_model, tmp_path
+):
     """``perception="cameras-true-pose"`` (the ladder's ``twin-cameras`` rung): the segmented camera
     cloud, not the mesh samples (IoU under 1), with the exact transform to the true goal in place of
     registration: the loop's distance is the true one, so its verdict is the true one."""
