@@ -38,6 +38,11 @@ class OnRefusal(str, Enum):
     next_episode = "next-episode"
 
 
+class Registration(str, Enum):  # robot.loop.REGISTRATIONS
+    views = "views"
+    model = "model"
+
+
 RobotOpt = Annotated[
     Robot,
     typer.Option("--robot", help="panda (panda-python) | fr3 (franky) | sim (the MuJoCo twin of the cell)."),
@@ -144,6 +149,20 @@ def deploy(
             help="Slow every move by this factor (the cell's speeds are the maximum).",
         ),
     ] = 1.0,
+    registration: Annotated[
+        Registration,
+        typer.Option(
+            "--registration",
+            help="views: the current cloud to the goal cloud; model: both to the object's mesh "
+            "(the twin's object, or --object-mesh on a cell).",
+        ),
+    ] = "views",
+    object_mesh: Annotated[
+        Path | None,
+        typer.Option(
+            "--object-mesh", help="The object's mesh (.obj / .stl, metres) for --registration model."
+        ),
+    ] = None,
 ) -> None:
     """Run an exported ONNX policy on a Franka arm with depth cameras, or on its MuJoCo twin.
 
@@ -186,6 +205,8 @@ def deploy(
         replay=replay,
         objects=objects,
         speed_scale=speed_scale,
+        registration=Registration(registration).value,
+        object_mesh=object_mesh,
         command=shlex.join(["hydo", *sys.argv[1:]]),
     )
     dep = Deployment.prepare(cfg, printer=lambda msg: err.print(msg, highlight=False))

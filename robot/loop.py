@@ -54,6 +54,7 @@ from robot.errors import (
     UnreachableError,
 )
 from robot.executor import Outcome
+from robot.model_registration import ModelRegistration, ObjectModel
 from robot.onnx_policy import OnnxPolicy
 from robot.perception import Background, Segmented, capture_background, observation, segment
 from robot.recovery import handle_failure
@@ -70,11 +71,15 @@ from robot.twin_metrics import (
 )
 from sim.contract import MAX_PRIMITIVES, SUCCESS_THRESHOLD_M
 from sim.goals import episode_seed
+from sim.objects import load_user_mesh
 from sim.observe import bin_background_points, camera_visible_surface
 from sim.primitive import PrimitiveRejected, feasibility_mask
 
 ROBOTS = ("panda", "fr3", "sim")
 PERCEPTIONS = ("cameras", "cameras-true-pose", "true")
+#: "views": the current cloud to the goal cloud (``robot.registration``); "model": both clouds to the
+#: object's mesh (``robot.model_registration``: the twin's object, or ``object_mesh`` on a cell)
+REGISTRATIONS = ("views", "model")
 #: Refusals: bad input that stops nothing physical. Robot and camera failures are never refusals.
 REFUSALS = (PerceptionError, RegistrationError, InputError, PrimitiveRejected, UnreachableError)
 RECAPTURE_WAIT_S = 0.5
@@ -108,6 +113,8 @@ class DeployConfig:
     # goal in place of registration, so that the ladder tells what the cloud costs from what
     # registration does
     perception: str = "cameras"
+    registration: str = "views"  # REGISTRATIONS
+    object_mesh: Path | None = None  # the object's mesh (.obj / .stl) for model registration on a cell
     command: str = ""
 
     def resolved_on_refusal(self) -> str:
@@ -168,6 +175,9 @@ class Deployment:
         self.result = SessionResult(log.folder)
         self.on_plan = None  # dry-run hook: called with (episode, step, plan)
         self._true_goal_T = None
+        self.object_model: ObjectModel | None = None  # --object-mesh's (model registration on a cell)
+        # model registration: the goal it was made for and its registration (the goal's fitted pose)
+        self._model_registration: tuple[Goal, ModelRegistration] | None = None
 
     # --- start-up -----------------------------------------------------------------------------------
     @classmethod
@@ -187,6 +197,20 @@ class Deployment:
                 "true-pose perception exists only in the twin with its sampled goals "
                 "(--robot sim, no --goal, --goal-offset or --replay)"
             )
+        if cfg.registration not in REGISTRATIONS:
+            raise ValueError(
+                f"`registration` must be one of {list(REGISTRATIONS)}. Got {cfg.registration!r}."
+            )
+        if cfg.registration == "model" and (cfg.robot != "sim" or cfg.replay is not None):
+            if cfg.object_mesh is None:
+                raise InputError(
+                    "--registration model on a cell needs the object's mesh: --object-mesh FILE (.obj / .stl)"
+                )
+        object_model = None
+        if cfg.object_mesh is not None:
+            if cfg.registration != "model":
+                raise InputError("--object-mesh is for --registration model")
+            object_model = ObjectModel.from_asset(load_user_mesh(cfg.object_mesh))
         cell = load_cell(cfg.cell)
         policy = OnnxPolicy.load(cfg.model)
         goal = Goal.load(cfg.goal) if cfg.goal is not None else None
@@ -222,6 +246,7 @@ class Deployment:
         dep = cls(cfg, cell, policy, log, printer)
         dep.background = background
         dep.goal = goal
+        dep.object_model = object_model
         log.write_json(
             "session.json",
             {
@@ -373,7 +398,9 @@ class Deployment:
                     check_goal(self.cell, goal.points, f"--goal-offset {_offset_text(cfg.goal_offset)}")
                     goal.save(self.log.folder / "goals" / f"e{ep:03d}.npz")
                     self.log.event("goal_from_offset", episode=ep, offset=list(cfg.goal_offset))
-                if cfg.perception == "cameras":
+                if cfg.perception == "cameras" and cfg.registration == "model":
+                    reg = self._register_to_model(seg, goal, step)
+                elif cfg.perception == "cameras":
                     reg, widened = register_checked(
                         seg.obj_points,
                         goal.points,
@@ -659,6 +686,19 @@ class Deployment:
             [0.0] * len(masks),
         )
         return seg, self._true_registration()
+
+    def _register_to_model(self, seg: Segmented, goal: Goal, step: int) -> Registration:
+        """``registration="model"``: the step's cloud through the object's mesh to the goal cloud (the
+        goal's pose is fitted once per goal: ``robot.model_registration``)."""
+        if self._model_registration is None or self._model_registration[0] is not goal:
+            model = self.object_model
+            if model is None:  # the twin: the episode's object
+                model = ObjectModel.from_asset(self.world.asset)
+            mr = ModelRegistration(
+                model, goal.points, self.cell.bin_center, self.cell.cameras, self.goal_mode
+            )
+            self._model_registration = (goal, mr)
+        return self._model_registration[1].register(seg.obj_points, self.cfg.seed + step)
 
     def _true_registration(self) -> Registration:
         """Twin only: the exact transform from the true pose to the nearest true goal pose (up to the

@@ -217,6 +217,36 @@ def _subsample(p: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
     return p if len(p) <= n else p[rng.choice(len(p), n, replace=False)]
 
 
+def icp_solutions(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    tree: cKDTree,
+    mode: str,
+    search: str,
+    rng: np.random.Generator,
+    starts: Sequence[np.ndarray] = (),
+) -> list[tuple[float, np.ndarray]]:
+    """Trimmed ICP of ``src (M, 3)`` onto ``tgt (G, 3)`` (``tree``: its KD-tree) from distinct starts:
+    ``(trimmed RMS, T (4, 4))`` each, in start order. The starts: ``starts`` (full transforms: a
+    pose known from before), the current orientation (no turn), then the best-scoring coarse
+    rotations (:func:`candidate_rotations`, centroids aligned), at least ``DISTINCT_START_DEG`` apart."""
+    cs, ct = src.mean(0), tgt.mean(0)
+    coarse = _subsample(src, COARSE_POINTS, rng) - cs  # (m, 3)
+    Rs = candidate_rotations(mode, search)  # (C, 3, 3)
+    x = np.einsum("cij,mj->cmi", Rs, coarse) + ct  # (C, m, 3)
+    d, _ = tree.query(x.reshape(-1, 3))
+    d = np.sort(d.reshape(len(Rs), -1), axis=1)[:, : int(TRIM * coarse.shape[0])]
+    n = REFINE_CANDIDATES if search == "fast" else WIDE_REFINE_CANDIDATES
+    no_turn = np.eye(3)
+    T0s = [np.asarray(T, float) for T in starts]
+    for R0 in [no_turn, *Rs[_distinct_starts(Rs, d.mean(1), n, taken=(no_turn,))]]:
+        T0 = np.eye(4)
+        T0[:3, :3] = R0
+        T0[:3, 3] = ct - R0 @ cs
+        T0s.append(T0)
+    return [(rms, T) for T, rms in (_icp(src, tgt, tree, T0) for T0 in T0s)]
+
+
 def register(
     source: np.ndarray,
     target: np.ndarray,
@@ -241,20 +271,8 @@ def register(
     src = _subsample(source, MAX_SOURCE_POINTS, rng)
     tgt = _subsample(target, MAX_TARGET_POINTS, rng)
     tree = cKDTree(tgt)
-    cs, ct = src.mean(0), tgt.mean(0)
-    coarse = _subsample(src, COARSE_POINTS, rng) - cs  # (m, 3)
-    Rs = candidate_rotations(mode, search)  # (C, 3, 3)
-    x = np.einsum("cij,mj->cmi", Rs, coarse) + ct  # (C, m, 3)
-    d, _ = tree.query(x.reshape(-1, 3))
-    d = np.sort(d.reshape(len(Rs), -1), axis=1)[:, : int(TRIM * coarse.shape[0])]
     solutions = []  # (trimmed RMS, T) of ICP from each distinct start
-    starts = REFINE_CANDIDATES if search == "fast" else WIDE_REFINE_CANDIDATES
-    no_turn = np.eye(3)
-    for R0 in [no_turn, *Rs[_distinct_starts(Rs, d.mean(1), starts, taken=(no_turn,))]]:
-        T0 = np.eye(4)
-        T0[:3, :3] = R0
-        T0[:3, 3] = ct - R0 @ cs
-        T, rms = _icp(src, tgt, tree, T0)
+    for rms, T in icp_solutions(src, tgt, tree, mode, search, rng):
         if len(cameras):
             # refit on the points the goal can show: the others have no counterpart in the goal cloud
             # and pull a fit that must match views of different faces (a flip) towards them. The

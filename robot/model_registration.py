@@ -1,0 +1,189 @@
+"""Registration to the object's model: the current and goal poses from the object's mesh.
+
+View-to-view registration (:func:`robot.registration.register`) matches the current cloud to the
+goal cloud. Where the two partial views fit in several poses it flows to the one needing the least
+motion, which is right for an exact symmetry and wrong for a near one: a box with two sides of
+nearly equal size, an L-prism, a mug whose handle is hidden. On the 6D twin that choice read the
+distance more than 1 cm short in about a sixth of the registrations, and the policy then pushed
+towards a pose the goal does not accept (docs/results.md, issue 29).
+
+When the cell knows the object's mesh (in the twin: the episode's object; on a cell:
+``hydo deploy --registration model --object-mesh FILE``), each cloud is fitted to the model instead:
+
+1. pose: trimmed ICP of the cloud onto the model's surface samples (the complete surface, so every
+   observed point has a counterpart) from the distinct starts of :func:`robot.registration.icp_solutions`,
+   plus the previous pose when there is one;
+2. which fit: the one whose *camera-visible* model surface (``sim.observe.camera_visible_surface``,
+   the training observation's z-buffer) agrees best with the cloud both ways. A near-symmetric
+   wrong pose shows surface where the cloud has none, or none where it has some;
+3. the flow: to the nearest of the goal pose's symmetric poses (``sim.symmetry``, the same rule as
+   training's reward, ``sim.contract.symmetric_goal``), and the distance is the reward's quantity
+   over the model's surface samples.
+
+The goal's pose is fitted once per episode with the wide search; the current pose at every step with
+the fast one. What a user captures for the goal (``capture-goal``'s cloud) is the same in both
+registrations; only the mesh is added.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from robot.errors import RegistrationError
+from robot.registration import (
+    AGREE_M,
+    AGREE_TOL,
+    AMBIGUOUS_DISTINCT_M,
+    COVERAGE_POINTS,
+    INLIER_M,
+    MAX_SOURCE_POINTS,
+    Registration,
+    _subsample,
+    icp_solutions,
+)
+from sim.contract import SymmetricGoals, transform_points
+from sim.observe import camera_visible_surface
+
+
+@dataclass(frozen=True)
+class ObjectModel:
+    """The object's surface samples and symmetries, object frame (metres)."""
+
+    points: np.ndarray  # (K, 3) uniform outer-surface samples
+    normals: np.ndarray  # (K, 3) outward unit normals
+    symmetries: np.ndarray  # (S, 4, 4) transforms the surface maps onto itself, identity first
+
+    @classmethod
+    def from_asset(cls, asset) -> ObjectModel:
+        """From a ``sim.objects.ObjectAsset`` (a built-in object or a user mesh)."""
+        from sim.symmetry import symmetries
+
+        return cls(
+            np.asarray(asset.surface_points, float),
+            np.asarray(asset.surface_normals, float),
+            np.asarray(symmetries(asset), float),
+        )
+
+
+@dataclass
+class PoseFit:
+    """A model pose fitted to a cloud: ``T`` maps the object frame to the cell's bin frame."""
+
+    T: np.ndarray  # (4, 4)
+    rmse: float  # m, RMS of the cloud's inlier distances (< INLIER_M) to the model surface
+    inlier_fraction: float  # of the cloud points, within INLIER_M of the model surface
+    agreement: float  # two-way share of cloud and camera-visible model points within AGREE_M
+    others: tuple[np.ndarray, ...] = ()  # (4, 4) poses that agree about as well (within AGREE_TOL)
+
+
+def _views(cameras: Sequence, origin: np.ndarray) -> list:
+    """The cell's cameras as ``sim.depth.seen_from_cameras`` views in the bin frame (floor at z = 0)."""
+    to_bin = np.eye(4)
+    to_bin[:3, 3] = -origin
+    return [(c.K, to_bin @ c.T_base_camera, (c.height, c.width)) for c in cameras]
+
+
+def fit_pose(
+    cloud: np.ndarray,
+    model: ObjectModel,
+    views: list,
+    mode: str,
+    rng: np.random.Generator,
+    search: str = "fast",
+    prior: np.ndarray | None = None,
+) -> PoseFit:
+    """Fit ``model`` to ``cloud (M, 3)`` (bin frame, floor at z = 0, metres); ``views``: the cameras
+    in that frame (:func:`_views`); ``prior (4, 4)``: a pose to start from as well (the last step's)."""
+    cloud = np.asarray(cloud, float)
+    if len(cloud) < 10:
+        raise RegistrationError(f"registration needs at least 10 object points (have {len(cloud)})")
+    src = _subsample(cloud, MAX_SOURCE_POINTS, rng)
+    tree = cKDTree(model.points)
+    starts = () if prior is None else (np.linalg.inv(prior),)  # icp maps cloud -> object frame
+    cloud_tree = cKDTree(cloud)
+    scored = []
+    for _, T_inv in icp_solutions(src, model.points, tree, mode, search, rng, starts):
+        T = np.linalg.inv(T_inv)
+        vis, _ = camera_visible_surface(model.points, model.normals, T, views)
+        near_cloud = cKDTree(vis).query(cloud)[0] < AGREE_M  # cloud points the visible model explains
+        explained = cloud_tree.query(vis)[0] < AGREE_M  # visible model points the cloud shows
+        scored.append((0.5 * (near_cloud.mean() + explained.mean()), T, T_inv))
+    scored.sort(key=lambda s: -s[0])
+    agreement, T, T_inv = scored[0]
+    d = tree.query(transform_points(T_inv, cloud))[0]
+    inl = d < INLIER_M
+    rmse = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else np.inf
+    others = tuple(t for a, t, _ in scored[1:] if a >= agreement - AGREE_TOL)
+    return PoseFit(T, rmse, float(inl.mean()), float(agreement), others)
+
+
+class ModelRegistration:
+    """Registers each step's cloud through the object's model to one episode's goal cloud.
+
+    ``goal_points (G, 3)``: the goal cloud, base frame; ``origin (3,)``: the bin floor's centre in the
+    base frame (the cell's ``bin_center``); ``cameras``: the cell's camera specs. The goal's pose is
+    fitted on the first call (wide search); each call fits the current pose, starting also from the
+    last one."""
+
+    def __init__(self, model: ObjectModel, goal_points: np.ndarray, origin: np.ndarray, cameras, mode: str):
+        self.model, self.mode = model, mode
+        self.origin = np.asarray(origin, float)
+        self.views = _views(cameras, self.origin)
+        self.goal_points = np.asarray(goal_points, float)
+        self.goal: PoseFit | None = None
+        self.last: np.ndarray | None = None  # the last step's pose, bin frame
+
+    def register(self, points: np.ndarray, seed: int) -> Registration:
+        """The current cloud ``points (M, 3)`` (base frame) → a :class:`Registration` whose ``T`` maps
+        current points onto the goal (base frame), with :func:`robot.registration.register`'s fields:
+        ``distance`` the reward's mean flow over the model's surface samples, ``alternatives`` the
+        distances of the other poses of either fit that agree about as well (the verdict's ambiguity),
+        ``goal_coverage`` the share of the goal cloud within 1 cm of the moved current cloud."""
+        t0 = time.perf_counter()
+        rng = np.random.default_rng(seed)
+        if self.goal is None:
+            self.goal = fit_pose(
+                self.goal_points - self.origin, self.model, self.views, self.mode, rng, "wide"
+            )
+        cur = fit_pose(
+            np.asarray(points, float) - self.origin, self.model, self.views, self.mode, rng, prior=self.last
+        )
+        self.last = cur.T
+
+        def flow(T_cur: np.ndarray, T_goal_pose: np.ndarray) -> tuple[np.ndarray, float]:
+            """Bin-frame current → goal transform to the nearest symmetric goal pose, and its distance."""
+            near = SymmetricGoals(T_goal_pose, self.model.points, self.model.symmetries).nearest(T_cur)
+            T_rel = near @ np.linalg.inv(T_cur)
+            surf = transform_points(T_cur, self.model.points)
+            return T_rel, float(np.linalg.norm(transform_points(T_rel, surf) - surf, axis=1).mean())
+
+        T_rel, distance = flow(cur.T, self.goal.T)
+        # the other readings: other current poses against the goal's, and the goal's others
+        alternatives: list[float] = []
+        for T_c, T_g in [(T, self.goal.T) for T in cur.others] + [(cur.T, T) for T in self.goal.others]:
+            d = flow(T_c, T_g)[1]
+            if abs(d - distance) > AMBIGUOUS_DISTINCT_M and all(
+                abs(d - a) > AMBIGUOUS_DISTINCT_M for a in alternatives
+            ):
+                alternatives.append(d)
+        to_base = np.eye(4)
+        to_base[:3, 3] = self.origin
+        T = to_base @ T_rel @ np.linalg.inv(to_base)  # the same motion, in the base frame
+        moved = transform_points(T, np.asarray(points, float))
+        probe = _subsample(self.goal_points, COVERAGE_POINTS, rng)
+        coverage = float((cKDTree(moved).query(probe)[0] < INLIER_M).mean())
+        return Registration(
+            T,
+            max(cur.rmse, self.goal.rmse),
+            min(cur.inlier_fraction, self.goal.inlier_fraction),
+            distance,
+            time.perf_counter() - t0,
+            tuple(alternatives),
+            coverage,
+            1.0,
+        )
