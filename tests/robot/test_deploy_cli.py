@@ -96,6 +96,18 @@ def test_real_arm_needs_a_goal(tiny_model, tmp_path):
     assert r.returncode == 1 and "needs a goal" in one_line_error(r)
 
 
+def test_model_registration_on_a_cell_needs_a_readable_object_mesh(tiny_model, tmp_path):
+    base = ["deploy", "--robot", "panda", "--model", str(tiny_model), "--goal-offset", "0.05,0"]
+    r = hydo(*base, "--registration", "model", "--log", str(tmp_path / "a"))
+    assert r.returncode == 1 and "needs the object's mesh: --object-mesh" in one_line_error(r)
+    bad = tmp_path / "broken.obj"
+    bad.write_text("v 0 0 0\nf 1 2 3\n")
+    r = hydo(*base, "--registration", "model", "--object-mesh", str(bad), "--log", str(tmp_path / "b"))
+    assert r.returncode == 1 and "broken.obj" in one_line_error(r)
+    r = hydo(*base, "--object-mesh", str(bad), "--log", str(tmp_path / "c"))
+    assert r.returncode == 1 and "--object-mesh is for --registration model" in one_line_error(r)
+
+
 def test_no_realtime_kernel_refused_unless_overridden(tiny_model, tmp_path):
     from robot.safety import has_realtime_kernel
 

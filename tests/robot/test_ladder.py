@@ -168,6 +168,28 @@ def test_cameras_true_pose_perception_observes_through_the_cameras_and_flows_by_
     assert not any(e["event"] == "registration_widened" for e in read_log(tmp_path / "s"))
 
 
+def test_model_registration_in_the_twin_reads_the_true_distance(tiny_model, tmp_path):
+    """``registration="model"`` in the twin: the episode's object is the model; every step's
+    registration reads the true distance to within a few millimetres."""
+    dep = Deployment.prepare(
+        DeployConfig(
+            robot="sim",
+            model=tiny_model,
+            episodes=2,
+            max_steps=2,
+            seed=5,
+            registration="model",
+            log_dir=tmp_path / "s",
+        )
+    )
+    dep.run()
+    observed = [e for e in read_log(tmp_path / "s") if e["event"] == "observation"]
+    assert observed
+    for e in observed:
+        assert abs(e["registration"]["distance_m"] - e["true_distance_m"]) < 0.005
+        assert e["registration_error_m"] < 0.008  # ADD-S: as close as view registration gets (2-5 mm)
+
+
 def test_a_twin_episode_does_not_depend_on_how_long_the_one_before_ran(tiny_model, tmp_path):
     """Episode 1 sees the same clouds whether episode 0 ran one step or three: each twin episode's
     depth noise and samples are drawn from (seed, episode), so two code versions that end episode 0
