@@ -373,6 +373,12 @@ def ladder_cmd(
         Path | None, typer.Option("--json", help="Also write the ladder's JSON here.")
     ] = None,
     jobs: Annotated[int, typer.Option("--jobs", min=1, help="Rungs run at a time (one process each).")] = 2,
+    registration: Annotated[
+        Registration,
+        typer.Option(
+            "--registration", help="The twin rung's registration: views, or model (the object's mesh)."
+        ),
+    ] = "views",
 ) -> None:
     """Where a policy's success is lost between training and the cell: the sim → twin ladder.
 
@@ -407,7 +413,9 @@ def ladder_cmd(
     err.print(f"ladder: {', '.join(chosen)}; {episodes} episodes each, seed {seed}; logs in {folder}")
     t0 = time.time()
     try:
-        results = run_ladder(model, episodes, seed, folder, chosen, objects, jobs)
+        results = run_ladder(
+            model, episodes, seed, folder, chosen, objects, jobs, Registration(registration).value
+        )
     except KeyboardInterrupt:
         err.print("interrupted")
         raise typer.Exit(130) from None

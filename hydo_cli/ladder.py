@@ -146,8 +146,11 @@ def run_env_rung(rung: str, model: Path, n: int, seed: int, objects: str, goals:
     )
 
 
-def run_twin_rung(rung: str, model: Path, n: int, seed: int, objects: str, log_dir: Path) -> RungResult:
-    """``twin-true`` / ``twin``: ``hydo deploy --robot sim`` on the same episodes (``robot.loop``)."""
+def run_twin_rung(
+    rung: str, model: Path, n: int, seed: int, objects: str, log_dir: Path, registration: str = "views"
+) -> RungResult:
+    """``twin-true`` / ``twin-cameras`` / ``twin``: ``hydo deploy --robot sim`` on the same episodes
+    (``robot.loop``); ``registration``: the ``twin`` rung's (``views`` | ``model``)."""
     from robot.loop import DeployConfig, Deployment
     from robot.report import write_summary
 
@@ -160,6 +163,7 @@ def run_twin_rung(rung: str, model: Path, n: int, seed: int, objects: str, log_d
         log_dir=log_dir,
         objects=objects,
         perception={"twin-true": "true", "twin-cameras": "cameras-true-pose"}.get(rung, "cameras"),
+        registration=registration,
         command=f"hydo deploy ladder (rung {rung})",
     )
     res = Deployment.prepare(cfg).run()
@@ -211,10 +215,10 @@ def run_twin_rung(rung: str, model: Path, n: int, seed: int, objects: str, log_d
 
 
 def _run_rung(args) -> RungResult:
-    rung, model, n, seed, objects, goals, log_dir = args
+    rung, model, n, seed, objects, goals, log_dir, registration = args
     if rung.startswith("env"):
         return run_env_rung(rung, model, n, seed, objects, goals)
-    return run_twin_rung(rung, model, n, seed, objects, log_dir / rung)
+    return run_twin_rung(rung, model, n, seed, objects, log_dir / rung, registration)
 
 
 def run_ladder(
@@ -225,15 +229,17 @@ def run_ladder(
     rungs: tuple[str, ...] = tuple(RUNGS),
     objects: str | None = None,
     jobs: int = 2,
+    registration: str = "views",
 ) -> list[RungResult]:
     """Run ``rungs`` of the ladder for an exported ``model`` (``jobs`` rungs at a time, one process
-    each); returns them in ladder order. Twin sessions are logged under ``log_dir/<rung>``."""
+    each); returns them in ladder order. Twin sessions are logged under ``log_dir/<rung>``;
+    ``registration``: the ``twin`` rung's (``hydo deploy --registration``)."""
     import json
 
     manifest = json.loads((Path(model) / "manifest.json").read_text())
     objects = objects or str(manifest.get("objects") or "train")
     goals = str(manifest.get("goals", "6d"))
-    tasks = [(r, Path(model), episodes, seed, objects, goals, Path(log_dir)) for r in rungs]
+    tasks = [(r, Path(model), episodes, seed, objects, goals, Path(log_dir), registration) for r in rungs]
     if jobs <= 1:
         return [_run_rung(t) for t in tasks]
     # slowest first (the twin with cameras), so the rungs finish close together
