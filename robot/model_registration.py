@@ -42,12 +42,19 @@ from robot.registration import (
     COVERAGE_POINTS,
     INLIER_M,
     MAX_SOURCE_POINTS,
+    TRIM,
     Registration,
     _subsample,
     icp_solutions,
+    kabsch,
 )
 from sim.contract import SymmetricGoals, transform_points
 from sim.observe import camera_visible_surface
+
+REFINED_FITS = 3  # ICP solutions refined against the visible model surface (the best-agreeing ones)
+VISIBLE_ICP_ITERS = 15
+# a current fit agreeing less than this with the cloud is searched again, wide (good fits: 0.95-0.99)
+WIDEN_BELOW = 0.9
 
 
 @dataclass(frozen=True)
@@ -88,6 +95,29 @@ def _views(cameras: Sequence, origin: np.ndarray) -> list:
     return [(c.K, to_bin @ c.T_base_camera, (c.height, c.width)) for c in cameras]
 
 
+def _visible_icp(
+    src: np.ndarray, src_tree: cKDTree, model: ObjectModel, T: np.ndarray, views: list
+) -> np.ndarray:
+    """Two-way trimmed ICP between the cloud ``src (M, 3)`` (bin frame) and the model's surface the
+    cameras would see at pose ``T`` (object → bin frame), the visible surface recomputed as the pose
+    moves: cloud points pull on their nearest visible model points and visible model points on their
+    nearest cloud points, so surface the cameras would see but the cloud lacks counts against a pose."""
+    for _ in range(VISIBLE_ICP_ITERS):
+        vis, _ = camera_visible_surface(model.points, model.normals, T, views)
+        d1, j1 = cKDTree(vis).query(src)
+        d2, j2 = src_tree.query(vis)
+        k1, k2 = d1 <= np.quantile(d1, TRIM), d2 <= np.quantile(d2, TRIM)
+        a = np.concatenate([vis[j1[k1]], vis[k2]])  # model points ...
+        b = np.concatenate([src[k1], src[j2[k2]]])  # ... and where the cloud puts them
+        R, t = kabsch(a, b)
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = R, t
+        T = step @ T
+        if np.linalg.norm(t) < 1e-4 and np.trace(R) > 3 - 1e-6:
+            break
+    return T
+
+
 def fit_pose(
     cloud: np.ndarray,
     model: ObjectModel,
@@ -106,13 +136,24 @@ def fit_pose(
     tree = cKDTree(model.points)
     starts = () if prior is None else (np.linalg.inv(prior),)  # icp maps cloud -> object frame
     cloud_tree = cKDTree(cloud)
-    scored = []
-    for _, T_inv in icp_solutions(src, model.points, tree, mode, search, rng, starts):
-        T = np.linalg.inv(T_inv)
+    src_tree = cKDTree(src)
+
+    def agreement_of(T: np.ndarray) -> float:
         vis, _ = camera_visible_surface(model.points, model.normals, T, views)
         near_cloud = cKDTree(vis).query(cloud)[0] < AGREE_M  # cloud points the visible model explains
         explained = cloud_tree.query(vis)[0] < AGREE_M  # visible model points the cloud shows
-        scored.append((0.5 * (near_cloud.mean() + explained.mean()), T, T_inv))
+        return 0.5 * (float(near_cloud.mean()) + float(explained.mean()))
+
+    # ICP of the cloud onto the whole surface is lenient (a mug's outer wall fits its inner one), so
+    # the best few are refined against what the cameras would see of the model at each pose
+    fits = [
+        np.linalg.inv(T_inv) for _, T_inv in icp_solutions(src, model.points, tree, mode, search, rng, starts)
+    ]
+    first = sorted(((agreement_of(T), i) for i, T in enumerate(fits)), reverse=True)[:REFINED_FITS]
+    scored = []
+    for _, i in first:
+        T = _visible_icp(src, src_tree, model, fits[i], views)
+        scored.append((agreement_of(T), T, np.linalg.inv(T)))
     scored.sort(key=lambda s: -s[0])
     agreement, T, T_inv = scored[0]
     d = tree.query(transform_points(T_inv, cloud))[0]
@@ -150,9 +191,11 @@ class ModelRegistration:
             self.goal = fit_pose(
                 self.goal_points - self.origin, self.model, self.views, self.mode, rng, "wide"
             )
-        cur = fit_pose(
-            np.asarray(points, float) - self.origin, self.model, self.views, self.mode, rng, prior=self.last
-        )
+        cloud = np.asarray(points, float) - self.origin
+        cur = fit_pose(cloud, self.model, self.views, self.mode, rng, prior=self.last)
+        if cur.agreement < WIDEN_BELOW:  # the fast search missed: look again, wider (~2 s)
+            wide = fit_pose(cloud, self.model, self.views, self.mode, rng, "wide", prior=self.last)
+            cur = max(cur, wide, key=lambda f: f.agreement)
         self.last = cur.T
 
         def flow(T_cur: np.ndarray, T_goal_pose: np.ndarray) -> tuple[np.ndarray, float]:
