@@ -52,6 +52,7 @@ from robot import registration  # noqa: E402
 from robot.cell import load_cell  # noqa: E402
 from robot.connect import open_cameras  # noqa: E402
 from robot.errors import RegistrationError  # noqa: E402
+from robot.model_registration import ModelRegistration, ObjectModel  # noqa: E402
 from robot.perception import capture_background, segment  # noqa: E402
 from robot.registration import INLIER_M, check_registration, goal_visible, register_checked  # noqa: E402
 from robot.twin import TwinWorld, sample_episode  # noqa: E402
@@ -82,10 +83,18 @@ def _quat_yaw(quat_wxyz: np.ndarray, yaw: float) -> np.ndarray:
     return np.array([c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w])
 
 
-def measure(cell, world, cams, background, T_goal, goal_points, mode, seed, rng) -> dict:
-    """Register the object's current cloud to ``goal_points``; the residuals and errors vs the truth."""
+def measure(cell, world, cams, background, T_goal, goal_points, mode, seed, rng, model_reg=None) -> dict:
+    """Register the object's current cloud to ``goal_points``; the residuals and errors vs the truth.
+    ``model_reg``: the episode's ``robot.model_registration.ModelRegistration`` (``--registration
+    model``), else view-to-view registration."""
     seg = segment(cams.capture(), background, cell, rng)
-    reg, widened = register_checked(seg.obj_points, goal_points, mode, seed, cell.cameras, cell.perception)
+    if model_reg is not None:
+        model_reg.last = None  # each case on its own, as a first step: no pose from before
+        reg, widened = model_reg.register(seg.obj_points, seed), False
+    else:
+        reg, widened = register_checked(
+            seg.obj_points, goal_points, mode, seed, cell.cameras, cell.perception
+        )
     p = cell.perception
     try:
         check_registration(
@@ -157,6 +166,7 @@ def summarise(rows: list[dict]) -> dict:
         "distance_error_p90_mm": float(
             np.quantile([abs(r["distance_m"] - r["true_distance_m"]) for r in rows], 0.9) * 1000
         ),
+        "distance_error_over_1cm": int(sum(abs(r["distance_m"] - r["true_distance_m"]) > 0.01 for r in rows)),
     }
 
 
@@ -173,6 +183,12 @@ def main() -> None:
         type=float,
         default=None,
         help="override robot.registration.AGREE_TOL (the agreement band the registration is picked in)",
+    )
+    ap.add_argument(
+        "--registration",
+        choices=("views", "model"),
+        default="views",
+        help="views: current cloud to goal cloud; model: both through the object's mesh (hydo deploy --registration)",
     )
     args = ap.parse_args()
 
@@ -200,13 +216,18 @@ def main() -> None:
             world.place_object(*start)
             kind = "flip" if _tilt_deg(world.object_T(), T_goal) >= FLIP_TILT_DEG else "move"
             row = {"episode": ep, "object": asset.name, "kind": kind}
-            row["start"] = measure(cell, world, cams, background, T_goal, goal_points, args.goals, ep, rng)
+            model_reg = None
+            if args.registration == "model":
+                model = ObjectModel.from_asset(asset)
+                model_reg = ModelRegistration(model, goal_points, cell.bin_center, cell.cameras, args.goals)
+            m = (cell, world, cams, background, T_goal, goal_points, args.goals, ep)
+            row["start"] = measure(*m, rng, model_reg)
             a = rng.uniform(0, 2 * np.pi)
             shift = rng.uniform(*NEAR_SHIFT_M) * np.array([np.cos(a), np.sin(a)])
             pos, quat = np.array(goal[0], float), np.array(goal[1], float)
             pos[:2] += shift
             world.place_object(pos, _quat_yaw(quat, np.deg2rad(rng.uniform(-NEAR_YAW_DEG, NEAR_YAW_DEG))))
-            row["near"] = measure(cell, world, cams, background, T_goal, goal_points, args.goals, ep, rng)
+            row["near"] = measure(*m, rng, model_reg)
             # its own random stream, so that start and near see the same draws as before it was added
             t_rng = np.random.default_rng([args.seed, ep, 7])
             a = t_rng.uniform(0, 2 * np.pi)
@@ -214,7 +235,7 @@ def main() -> None:
             pos[:2] += t_rng.uniform(0, TURNED_SHIFT_M) * np.array([np.cos(a), np.sin(a)])
             yaw = t_rng.choice((-1, 1)) * np.deg2rad(t_rng.uniform(*TURNED_YAW_DEG))
             world.place_object(pos, _quat_yaw(quat, yaw))
-            row["turned"] = measure(cell, world, cams, background, T_goal, goal_points, args.goals, ep, t_rng)
+            row["turned"] = measure(*m, t_rng, model_reg)
             episodes.append(row)
     world.close()
 
@@ -245,8 +266,13 @@ def main() -> None:
         "adds_median_mm",
         "adds_p90_mm",
         "adds_over_1cm",
+        "distance_error_p90_mm",
+        "distance_error_over_1cm",
     )
-    print(f"registration on the twin: {args.goals} goals, {args.episodes} episodes, seed {args.seed}")
+    print(
+        f"registration ({args.registration}) on the twin: {args.goals} goals, {args.episodes} episodes, "
+        f"seed {args.seed}"
+    )
     verdict_cols = ("verdict_agrees", "false_success", "false_failure", "undecided")
     print(f"{'case':<12}" + "".join(f"{c:>16}" for c in (*cols, *verdict_cols)))
     for case in CASES:

@@ -138,3 +138,14 @@ def test_learner_bench_compares_with_a_baseline_commit(tmp_path):
         data["current"]["hydo-cm"] / data["baseline"]["hydo-cm"]
     )
     assert data["baseline"]["hydo-cm"] > 0 and data["current"]["hydo-cm"] > 0
+
+
+@pytest.mark.slow
+def test_registration_bench_through_the_object_model(tmp_path):
+    """``bench/registration.py --registration model``: the same cases registered through the object's
+    mesh (``robot.model_registration``), with the distance error against the truth."""
+    data = _run_bench("registration.py", ["--episodes", "2", "--registration", "model"], tmp_path)
+    for case in ("start", "near", "turned"):
+        s = data[case]["all"]
+        assert s["n"] == 2 and s["refused"] == 0
+        assert s["distance_error_p90_mm"] < 10 and s["distance_error_over_1cm"] == 0
