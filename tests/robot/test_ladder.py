@@ -168,8 +168,21 @@ def test_cameras_true_pose_perception_observes_through_the_cameras_and_flows_by_
     assert not any(e["event"] == "registration_widened" for e in read_log(tmp_path / "s"))
 
 
-def test_model_registration_in_the_twin_reads_the_true_distance(tiny_model, tmp_path):
-    """``registration="model"`` in the twin: the episode's object is the model; every step's
+def _cube_obj(path, size: float = 0.06):
+    """A ``size`` m cube as an OBJ file (the twin's ``cube`` object), outward-wound."""
+    v = [(x, y, z) for x in (0, size) for y in (0, size) for z in (0, size)]
+    quads = ((1, 2, 4, 3), (5, 7, 8, 6), (1, 5, 6, 2), (3, 4, 8, 7), (1, 3, 7, 5), (2, 6, 8, 4))
+    faces = [f for a, b, c, d in quads for f in ((a, b, c), (a, c, d))]
+    path.write_text(
+        "".join(f"v {x} {y} {z}\n" for x, y, z in v) + "".join(f"f {a} {b} {c}\n" for a, b, c in faces)
+    )
+    return path
+
+
+@pytest.mark.parametrize("mesh", [False, True], ids=["twin-object", "object-mesh"])
+def test_model_registration_in_the_twin_reads_the_true_distance(tiny_model, tmp_path, mesh):
+    """``registration="model"`` in the twin: the model is the episode's object, or the user's
+    ``object_mesh`` as on a cell (here an OBJ of the same cube, in its own frame); every step's
     registration reads the true distance to within a few millimetres."""
     dep = Deployment.prepare(
         DeployConfig(
@@ -179,9 +192,11 @@ def test_model_registration_in_the_twin_reads_the_true_distance(tiny_model, tmp_
             max_steps=2,
             seed=5,
             registration="model",
+            object_mesh=_cube_obj(tmp_path / "cube.obj") if mesh else None,
             log_dir=tmp_path / "s",
         )
     )
+    assert (dep.object_model is not None) == mesh
     dep.run()
     observed = [e for e in read_log(tmp_path / "s") if e["event"] == "observation"]
     assert observed
