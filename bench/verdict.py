@@ -51,7 +51,9 @@ from sim.atomic import atomic_write_text  # noqa: E402
 from sim.contract import SUCCESS_THRESHOLD_M  # noqa: E402
 
 
-def _registration(r: dict) -> Registration:
+def _registration(r: dict, folded: bool = False) -> Registration:
+    """A logged registration; ``folded``: its session registered to the object's model (logs from
+    before the field was written say so only in the session's config)."""
     return Registration(
         np.asarray(r["T"], float),
         r["rmse_m"],
@@ -61,6 +63,7 @@ def _registration(r: dict) -> Registration:
         tuple(r["alternative_distances_m"]),
         r["goal_coverage"],
         r["overlap"],
+        r.get("folded", folded),
     )
 
 
@@ -108,7 +111,9 @@ def main() -> None:
     for session in args.sessions:
         # the session's step limit (a stop there is no claim the verdict could have withheld)
         meta = (session if session.is_dir() else session.parent) / "session.json"
-        limit = json.loads(meta.read_text())["config"]["max_steps"] if meta.is_file() else 10
+        config = json.loads(meta.read_text())["config"] if meta.is_file() else {}
+        limit = config.get("max_steps", 10)
+        folded = config.get("registration") == "model"
         obs: dict[int, list[dict]] = {}
         ends: dict[int, dict] = {}
         for e in _events(session):
@@ -118,7 +123,7 @@ def main() -> None:
                 ends[e["episode"]] = e
         for ep, steps in obs.items():
             for o in steps:
-                reg = _registration(o["registration"])
+                reg = _registration(o["registration"], folded)
                 truth = o["true_distance_m"] < thr
                 verdicts[(reg.verdict(thr, args.margin), truth)] += 1
                 if reg.distance < thr - args.margin:
@@ -126,7 +131,9 @@ def main() -> None:
             end = ends.get(ep)
             if end is not None:
                 claims = [
-                    o for o in steps if _registration(o["registration"]).verdict(thr, args.margin) in claimed
+                    o
+                    for o in steps
+                    if _registration(o["registration"], folded).verdict(thr, args.margin) in claimed
                 ]
                 first = claims[0] if claims else None
                 if first is not None and first["step"] < steps[-1]["step"]:
@@ -143,12 +150,12 @@ def main() -> None:
                     replayed["unknown"] += 1  # it would have acted again where the session stopped
                 else:
                     replayed["success" if end.get("true_success") else "failure"] += 1
-                    last_claim = _registration(steps[-1]["registration"]).verdict(thr, args.margin)
+                    last_claim = _registration(steps[-1]["registration"], folded).verdict(thr, args.margin)
                     if last_claim == "success" and not end.get("true_success"):
                         replayed["false_success"] += 1  # the session's own end, claimed and not true
             if end is not None and end.get("cause") in ("success", "ambiguous"):
                 last = steps[-1]
-                now = _registration(last["registration"]).verdict(thr, args.margin)
+                now = _registration(last["registration"], folded).verdict(thr, args.margin)
                 truth = "true" if last["true_distance_m"] < thr else "false"
                 stops[f"{end['cause']} ({truth}) -> {now}"] += 1
 

@@ -229,4 +229,5 @@ class ModelRegistration:
             tuple(alternatives),
             coverage,
             1.0,
+            folded=True,
         )

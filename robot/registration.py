@@ -105,6 +105,9 @@ class Registration:
     goal_coverage: float = 1.0
     # fraction of the current points that the goal's cameras would see at the goal (1 without cameras)
     overlap: float = 1.0
+    # the alternatives are never the object's symmetry (registration to its model folds that into the
+    # flow, robot.model_registration): one on the other side of the threshold is always ambiguous
+    folded: bool = False
 
     @property
     def ambiguous(self) -> bool:
@@ -119,8 +122,9 @@ class Registration:
         and the fits disagree on whether it is at the goal); ``uncertain`` within ``margin`` under
         the threshold (the registration's own distance error, checked first), or when the views do
         not match as closely as an object at its goal makes them (``SUCCESS_COVERAGE_MIN``,
-        ``SUCCESS_INLIERS_MIN``: a mug whose handle the fit put elsewhere); else ``success``."""
-        covered = self.goal_coverage >= COVERAGE_MIN
+        ``SUCCESS_INLIERS_MIN``: a mug whose handle the fit put elsewhere); else ``success``. With
+        ``folded`` alternatives, coverage cannot make them the object's symmetry: they count always."""
+        covered = self.goal_coverage >= COVERAGE_MIN and not self.folded
         if self.distance >= threshold:
             return "failure" if covered or all(a >= threshold for a in self.alternatives) else "ambiguous"
         if self.distance >= threshold - margin:
@@ -141,6 +145,7 @@ class Registration:
             "goal_coverage": round(self.goal_coverage, 4),
             "overlap": round(self.overlap, 4),
             "seconds": round(self.seconds, 4),
+            "folded": self.folded,
         }
 
 

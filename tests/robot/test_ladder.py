@@ -82,6 +82,16 @@ def test_registration_verdict_up_to_symmetry_and_ambiguous_when_the_views_differ
         "uncertain",
         "uncertain",
     ]
+    # registered to the object's model, an alternative is never the object's symmetry: one past the
+    # threshold makes the reading ambiguous however well the goal cloud is covered
+    near = dict(
+        T=np.eye(4), rmse=0.001, inlier_fraction=1.0, distance=0.02, seconds=0.0, alternatives=(0.06,)
+    )
+    assert Registration(**near, goal_coverage=0.96).verdict(SUCCESS_THRESHOLD_M, 0.003) == "success"
+    assert (
+        Registration(**near, goal_coverage=0.96, folded=True).verdict(SUCCESS_THRESHOLD_M, 0.003)
+        == "ambiguous"
+    )
     # within the success margin under the threshold: not yet a success
     assert Registration(np.eye(4), 0.001, 1.0, 0.027, 0.0).verdict(SUCCESS_THRESHOLD_M, 0.005) == "uncertain"
 
