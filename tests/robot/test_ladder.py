@@ -119,24 +119,22 @@ def test_an_ambiguous_registration_is_acted_on_again_and_never_a_success(tiny_mo
     assert ("ambiguous (not counted as success)", "1") in summary_lines(res)
 
 
+def _twin_session(tiny_model, folder, **cfg):
+    """Two twin episodes of seed 5, at most two primitives each, under ``cfg``; the prepared
+    deployment and its result."""
+    dep = Deployment.prepare(
+        DeployConfig(robot="sim", model=tiny_model, episodes=2, max_steps=2, seed=5, log_dir=folder, **cfg)
+    )
+    return dep, dep.run()
+
+
 def test_true_perception_observes_the_twin_like_the_training_env(tiny_model, tmp_path):
     """``perception="true"``: the exact transform to the true goal (IoU 1), the true distance
     as the loop's distance, so the loop's verdict is the true one; twin episode ``i`` of seed ``s``
     is ``hydo eval --seed s``'s episode ``i`` (same object, start and goal, in the cell's bin)."""
     from sim.env import BinEnv
 
-    dep = Deployment.prepare(
-        DeployConfig(
-            robot="sim",
-            model=tiny_model,
-            episodes=2,
-            max_steps=2,
-            seed=5,
-            perception="true",
-            log_dir=tmp_path / "s",
-        )
-    )
-    res = dep.run()
+    dep, res = _twin_session(tiny_model, tmp_path / "s", perception="true")
     s = res.summary()
     # (ADD-S against the exact goal: the nearest symmetric goal is a turn the surface maps onto itself)
     assert s["mean_iou"] == pytest.approx(1.0) and s["mean_registration_error_m"] < 0.001
@@ -157,18 +155,7 @@ def test_cameras_true_pose_perception_observes_through_the_cameras_and_flows_by_
     """``perception="cameras-true-pose"`` (the ladder's ``twin-cameras`` rung): the segmented camera
     cloud, not the mesh samples (IoU under 1), with the exact transform to the true goal in place of
     registration: the loop's distance is the true one, so its verdict is the true one."""
-    dep = Deployment.prepare(
-        DeployConfig(
-            robot="sim",
-            model=tiny_model,
-            episodes=2,
-            max_steps=2,
-            seed=5,
-            perception="cameras-true-pose",
-            log_dir=tmp_path / "s",
-        )
-    )
-    res = dep.run()
+    _, res = _twin_session(tiny_model, tmp_path / "s", perception="cameras-true-pose")
     s = res.summary()
     assert s["mean_iou"] < 0.999 and s["mean_registration_error_m"] < 0.001
     for e in res.episodes:
@@ -194,20 +181,9 @@ def test_model_registration_in_the_twin_reads_the_true_distance(tiny_model, tmp_
     """``registration="model"`` in the twin: the model is the episode's object, or the user's
     ``object_mesh`` as on a cell (here an OBJ of the same cube, in its own frame); every step's
     registration reads the true distance to within a few millimetres."""
-    dep = Deployment.prepare(
-        DeployConfig(
-            robot="sim",
-            model=tiny_model,
-            episodes=2,
-            max_steps=2,
-            seed=5,
-            registration="model",
-            object_mesh=_cube_obj(tmp_path / "cube.obj") if mesh else None,
-            log_dir=tmp_path / "s",
-        )
-    )
+    mesh_file = _cube_obj(tmp_path / "cube.obj") if mesh else None
+    dep, _ = _twin_session(tiny_model, tmp_path / "s", registration="model", object_mesh=mesh_file)
     assert (dep.object_model is not None) == mesh
-    dep.run()
     observed = [e for e in read_log(tmp_path / "s") if e["event"] == "observation"]
     assert observed
     for e in observed:
