@@ -212,27 +212,13 @@ def test_a_twin_episode_does_not_depend_on_how_long_the_one_before_ran(tiny_mode
     assert first and first == second
 
 
-def test_true_perception_exists_only_in_the_twin(tiny_model, tmp_path):
+@pytest.mark.parametrize(("robot", "perception"), [("panda", "true"), ("sim", "cameras-true-pose")])
+def test_true_poses_exist_only_in_the_twin_with_its_sampled_goals(tiny_model, tmp_path, robot, perception):
+    cfg = DeployConfig(
+        robot=robot, model=tiny_model, perception=perception, goal_offset=(0.1, 0, 0), log_dir=tmp_path / "a"
+    )
     with pytest.raises(InputError, match="only in the twin"):
-        Deployment.prepare(
-            DeployConfig(
-                robot="panda",
-                model=tiny_model,
-                perception="true",
-                goal_offset=(0.1, 0, 0),
-                log_dir=tmp_path / "a",
-            )
-        )
-    with pytest.raises(InputError, match="only in the twin"):
-        Deployment.prepare(
-            DeployConfig(
-                robot="sim",
-                model=tiny_model,
-                perception="cameras-true-pose",
-                goal_offset=(0.1, 0, 0),
-                log_dir=tmp_path / "c",
-            )
-        )
+        Deployment.prepare(cfg)
     with pytest.raises(ValueError, match="perception"):
         Deployment.prepare(
             DeployConfig(robot="sim", model=tiny_model, perception="oracle", log_dir=tmp_path / "b")
