@@ -54,7 +54,7 @@ from robot.errors import (
     UnreachableError,
 )
 from robot.executor import Outcome
-from robot.model_registration import ModelRegistration, ObjectModel
+from robot.model_registration import ModelRegistration, ObjectModel, bin_frame_views
 from robot.onnx_policy import OnnxPolicy
 from robot.perception import Background, Segmented, capture_background, observation, segment
 from robot.recovery import handle_failure
@@ -674,7 +674,7 @@ class Deployment:
         T_obj = w.object_T()
         to_bin = np.eye(4)
         to_bin[:3, 3] = -self.cell.bin_center
-        views = [(c.K, to_bin @ c.T_base_camera, (c.height, c.width)) for c in self.cell.cameras]
+        views = bin_frame_views(self.cell.cameras, self.cell.bin_center)
         p, n = camera_visible_surface(w.asset.surface_points, w.asset.surface_normals, to_bin @ T_obj, views)
         offset = self.cell.bin_center.astype(np.float32)
         masks = [w.true_mask(i) for i in range(len(self.cell.cameras))]

@@ -48,7 +48,7 @@ from robot.registration import (
     icp_solutions,
     kabsch,
 )
-from sim.contract import SymmetricGoals, transform_points
+from sim.contract import SymmetricGoals, mean_flow_distance, transform_points
 from sim.observe import camera_visible_surface
 
 REFINED_FITS = 3  # ICP solutions refined against the visible model surface (the best-agreeing ones)
@@ -88,7 +88,7 @@ class PoseFit:
     others: tuple[np.ndarray, ...] = ()  # (4, 4) poses that agree about as well (within AGREE_TOL)
 
 
-def _views(cameras: Sequence, origin: np.ndarray) -> list:
+def bin_frame_views(cameras: Sequence, origin: np.ndarray) -> list:
     """The cell's cameras as ``sim.depth.seen_from_cameras`` views in the bin frame (floor at z = 0)."""
     to_bin = np.eye(4)
     to_bin[:3, 3] = -origin
@@ -128,7 +128,7 @@ def fit_pose(
     prior: np.ndarray | None = None,
 ) -> PoseFit:
     """Fit ``model`` to ``cloud (M, 3)`` (bin frame, floor at z = 0, metres); ``views``: the cameras
-    in that frame (:func:`_views`); ``prior (4, 4)``: a pose to start from as well (the last step's)."""
+    in that frame (:func:`bin_frame_views`); ``prior (4, 4)``: a pose to start from as well (the last step's)."""
     cloud = np.asarray(cloud, float)
     if len(cloud) < 10:
         raise RegistrationError(f"registration needs at least 10 object points (have {len(cloud)})")
@@ -174,7 +174,7 @@ class ModelRegistration:
     def __init__(self, model: ObjectModel, goal_points: np.ndarray, origin: np.ndarray, cameras, mode: str):
         self.model, self.mode = model, mode
         self.origin = np.asarray(origin, float)
-        self.views = _views(cameras, self.origin)
+        self.views = bin_frame_views(cameras, self.origin)
         self.goal_points = np.asarray(goal_points, float)
         self.goal: PoseFit | None = None
         self.last: np.ndarray | None = None  # the last step's pose, bin frame
@@ -201,9 +201,8 @@ class ModelRegistration:
         def flow(T_cur: np.ndarray, T_goal_pose: np.ndarray) -> tuple[np.ndarray, float]:
             """Bin-frame current → goal transform to the nearest symmetric goal pose, and its distance."""
             near = SymmetricGoals(T_goal_pose, self.model.points, self.model.symmetries).nearest(T_cur)
-            T_rel = near @ np.linalg.inv(T_cur)
-            surf = transform_points(T_cur, self.model.points)
-            return T_rel, float(np.linalg.norm(transform_points(T_rel, surf) - surf, axis=1).mean())
+            surf = transform_points(T_cur, self.model.points)  # the reward's quantity, training's function
+            return near @ np.linalg.inv(T_cur), mean_flow_distance(surf, T_cur, near)
 
         T_rel, distance = flow(cur.T, self.goal.T)
         # the other readings: other current poses against the goal's, and the goal's others
