@@ -43,6 +43,11 @@ class Registration(str, Enum):  # robot.loop.REGISTRATIONS
     model = "model"
 
 
+class Observe(str, Enum):  # robot.loop.OBSERVATIONS
+    cloud = "cloud"
+    model = "model"
+
+
 RobotOpt = Annotated[
     Robot,
     typer.Option("--robot", help="panda (panda-python) | fr3 (franky) | sim (the MuJoCo twin of the cell)."),
@@ -163,6 +168,15 @@ def deploy(
             "--object-mesh", help="The object's mesh (.obj / .stl, metres) for --registration model."
         ),
     ] = None,
+    observe: Annotated[
+        Observe | None,
+        typer.Option(
+            "--observe",
+            help="What the policy sees of the object: cloud (the cameras' points, PCA normals) or model "
+            "(the mesh at the registered pose, as in training; needs --registration model). "
+            "Default: model with --registration model, else cloud.",
+        ),
+    ] = None,
 ) -> None:
     """Run an exported ONNX policy on a Franka arm with depth cameras, or on its MuJoCo twin.
 
@@ -207,6 +221,7 @@ def deploy(
         speed_scale=speed_scale,
         registration=Registration(registration).value,
         object_mesh=object_mesh,
+        observe=None if observe is None else Observe(observe).value,
         command=shlex.join(["hydo", *sys.argv[1:]]),
     )
     dep = Deployment.prepare(cfg, printer=lambda msg: err.print(msg, highlight=False))

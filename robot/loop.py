@@ -80,6 +80,11 @@ PERCEPTIONS = ("cameras", "cameras-true-pose", "true")
 #: "views": the current cloud to the goal cloud (``robot.registration``); "model": both clouds to the
 #: object's mesh (``robot.model_registration``: the twin's object, or ``object_mesh`` on a cell)
 REGISTRATIONS = ("views", "model")
+#: What the policy observes of the object with ``perception="cameras"``: "cloud", the cameras'
+#: segmented points and their PCA normals; "model" (needs ``registration="model"``), the mesh's
+#: samples the cameras would see at the fitted pose, with the mesh's normals: training's observation
+#: (``sim.observe``) of the registered pose, so that the policy sees what it was trained on
+OBSERVATIONS = ("cloud", "model")
 #: Refusals: bad input that stops nothing physical. Robot and camera failures are never refusals.
 REFUSALS = (PerceptionError, RegistrationError, InputError, PrimitiveRejected, UnreachableError)
 RECAPTURE_WAIT_S = 0.5
@@ -115,7 +120,13 @@ class DeployConfig:
     perception: str = "cameras"
     registration: str = "views"  # REGISTRATIONS
     object_mesh: Path | None = None  # the object's mesh (.obj / .stl) for model registration on a cell
+    observe: str | None = None  # OBSERVATIONS; None: "model" with model registration, else "cloud"
     command: str = ""
+
+    def resolved_observe(self) -> str:
+        if self.observe is not None:
+            return self.observe
+        return "model" if self.registration == "model" and self.perception == "cameras" else "cloud"
 
     def resolved_on_refusal(self) -> str:
         if self.on_refusal is not None:
@@ -206,6 +217,10 @@ class Deployment:
                 raise InputError(
                     "--registration model on a cell needs the object's mesh: --object-mesh FILE (.obj / .stl)"
                 )
+        if cfg.observe is not None and cfg.observe not in OBSERVATIONS:
+            raise ValueError(f"`observe` must be one of {list(OBSERVATIONS)}. Got {cfg.observe!r}.")
+        if cfg.resolved_observe() == "model" and (cfg.registration != "model" or cfg.perception != "cameras"):
+            raise InputError("--observe model needs --registration model (the object's pose from its mesh)")
         object_model = None
         if cfg.object_mesh is not None:
             if cfg.registration != "model":
@@ -458,6 +473,8 @@ class Deployment:
                     rec.seconds = time.perf_counter() - t_step
                     self.result.steps.append(rec)
                     break
+                if cfg.resolved_observe() == "model":
+                    seg = self._model_observation(seg)
                 obs = observation(seg, reg.T, self.policy.n_obj, self.policy.n_bg, self.rng)
                 self.gate.check_observation(obs, self.policy.n_obj, self.policy.n_bg)
                 t0 = time.perf_counter()
@@ -699,6 +716,21 @@ class Deployment:
             )
             self._model_registration = (goal, mr)
         return self._model_registration[1].register(seg.obj_points, self.cfg.seed + step)
+
+    def _model_observation(self, seg: Segmented) -> Segmented:
+        """``observe="model"``: the object as training observes it (``sim.observe``'s camera-visible
+        mesh samples and mesh normals) at the pose model registration fitted this step, in place of
+        the segmented points and their PCA normals. The background, masks and mismatch stay the
+        cameras'. The pose is ~2 mm off where the fit agrees (``fit_pose``); a fit that does not is
+        refused before (``check_registration``)."""
+        mr = self._model_registration[1]
+        p, n = camera_visible_surface(mr.model.points, mr.model.normals, mr.last, mr.views)
+        if len(p) < 10:
+            raise PerceptionError("the fitted model shows fewer than 10 points to the cameras")
+        offset = self.cell.bin_center
+        return Segmented(
+            (p + offset).astype(np.float32), n.astype(np.float32), seg.bg_points, seg.masks, seg.mismatch
+        )
 
     def _true_registration(self) -> Registration:
         """Twin only: the exact transform from the true pose to the nearest true goal pose (up to the

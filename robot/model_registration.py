@@ -21,7 +21,9 @@ When the cell knows the object's mesh (in the twin: the episode's object; on a c
    over the model's surface samples.
 
 The goal's pose is fitted once per episode with the wide search; the current pose at every step with
-the fast one. What a user captures for the goal (``capture-goal``'s cloud) is the same in both
+the fast one. With ``hydo deploy --observe model`` (the default with this registration) the policy
+then observes the mesh at the fitted pose, as in training (``robot.loop``).
+What a user captures for the goal (``capture-goal``'s cloud) is the same in both
 registrations; only the mesh is added.
 """
 
