@@ -108,6 +108,21 @@ def test_model_registration_on_a_cell_needs_a_readable_object_mesh(tiny_model, t
     assert r.returncode == 1 and "--object-mesh is for --registration model" in one_line_error(r)
 
 
+def test_model_observation_needs_model_registration(tiny_model, tmp_path):
+    r = hydo(
+        "deploy",
+        "--robot",
+        "sim",
+        "--model",
+        str(tiny_model),
+        "--observe",
+        "model",
+        "--log",
+        str(tmp_path / "a"),
+    )
+    assert r.returncode == 1 and "--observe model needs --registration model" in one_line_error(r)
+
+
 def test_no_realtime_kernel_refused_unless_overridden(tiny_model, tmp_path):
     from robot.safety import has_realtime_kernel
 

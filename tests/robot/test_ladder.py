@@ -191,6 +191,23 @@ def test_model_registration_in_the_twin_reads_the_true_distance(tiny_model, tmp_
         assert e["registration_error_m"] < 0.008  # ADD-S: as close as view registration gets (2-5 mm)
 
 
+@pytest.mark.parametrize("observe", ["model", "cloud"])
+def test_model_registration_observes_the_mesh_at_the_fitted_pose(tiny_model, tmp_path, observe):
+    """``observe="model"`` (the default with model registration): the policy observes the cube's mesh
+    samples and normals at the fitted pose, as training does, so every observed normal is one of the
+    cube's six face normals (pairwise dot products exactly 0 or ±1); ``observe="cloud"`` keeps the
+    cameras' points and their PCA normals, which are not."""
+    _twin_session(tiny_model, tmp_path / "s", registration="model", observe=observe)
+    steps = [np.load(f) for f in sorted((tmp_path / "s" / "steps").glob("*.npz"))]
+    acted = [s for s in steps if "points" in s.files]
+    assert acted
+    for s in acted:
+        n = s["obj_normals"].astype(np.float64)
+        dots = n @ n.T
+        face_normals = bool(np.all(np.abs(dots - np.round(dots)) < 1e-3))
+        assert face_normals == (observe == "model")
+
+
 def test_a_twin_episode_does_not_depend_on_how_long_the_one_before_ran(tiny_model, tmp_path):
     """Episode 1 sees the same clouds whether episode 0 ran one step or three: each twin episode's
     depth noise and samples are drawn from (seed, episode), so two code versions that end episode 0
