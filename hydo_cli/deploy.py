@@ -391,7 +391,9 @@ def ladder_cmd(
     registration: Annotated[
         Registration,
         typer.Option(
-            "--registration", help="The twin rung's registration: views, or model (the object's mesh)."
+            "--registration",
+            help="The twin rung's registration: views, or model (the object's mesh, which the policy "
+            "then observes at the fitted pose: --observe model).",
         ),
     ] = "views",
 ) -> None:
