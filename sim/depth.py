@@ -247,7 +247,7 @@ def clouds_from_depth(
     ``(obj_points (M, 3), obj_normals (M, 3), bg_points (L, 3), masks)`` float32, world frame,
     metres, and the per-camera object masks (H, W) bool. Object points: all masked pixels of all
     cameras, randomly thinned (``rng``) to ``max_object_points``; normals by :func:`estimate_normals`
-    oriented towards the camera that saw each point. Background points: unmasked valid pixels,
+    over the points of the camera that saw each point, oriented towards it. Background points: unmasked valid pixels,
     excluding raw foreground and a 2-pixel rim around the mask, on a ``bg_stride`` pixel grid,
     inside the box ``crop_low``..``crop_high`` (default: the bin, ``BIN_CROP_LOW``/``BIN_CROP_HIGH``).
     M may be 0 (nothing segmented): the caller decides what that means.
@@ -267,11 +267,19 @@ def clouds_from_depth(
                 bool
             )
         bg.append(crop_box(backproject(depth, K, T, ~near, stride=bg_stride), crop_low, crop_high))
+    camera = np.concatenate([np.full(len(p), i) for i, p in enumerate(obj)])
     obj_p, views, bg_p = np.concatenate(obj), np.concatenate(views), np.concatenate(bg)
     if len(obj_p) > max_object_points:
         keep = np.sort(rng.choice(len(obj_p), max_object_points, replace=False))
-        obj_p, views = obj_p[keep], views[keep]
-    return obj_p, estimate_normals(obj_p, NORMAL_K, views), bg_p, masks
+        obj_p, views, camera = obj_p[keep], views[keep], camera[keep]
+    # Normals from each camera's own points: fused neighbourhoods mix two cameras' depth noise (and,
+    # on a cell, their calibration error) across a surface; per camera the angle error is smaller
+    # (median 6.6° -> 5.4°, over 20°: 18 -> 16 % of points at 1 mm depth noise; docs/results.md)
+    normals = np.zeros(obj_p.shape, np.float32)
+    for i in np.unique(camera):
+        mine = camera == i
+        normals[mine] = estimate_normals(obj_p[mine], NORMAL_K, views[mine])
+    return obj_p, normals, bg_p, masks
 
 
 def seen_from_cameras(
