@@ -130,14 +130,19 @@ def test_real_franky_robot_absent_on_a_closed_loopback_port(cell):
     assert time.time() - t < 30
 
 
-def _when_moving(executor, action, after_s: float = 0.3) -> threading.Thread:
-    """Run ``action`` ``after_s`` into the next motion franky starts (a thread polling ``is_in_control``)."""
+def _when_moving(executor, action, after_s: float = 0.3, moved_m: float = 0.001) -> threading.Thread:
+    """Run ``action`` ``after_s`` into the next motion franky starts (a thread polling ``is_in_control``)
+    and once the fingertip has moved ``moved_m``: on a loaded machine franky-sim runs slower than
+    real time, and 0.3 s can be a fraction of a millimetre."""
 
     def wait_then_act():
+        start = executor.fingertip()
         deadline = time.time() + 30
         while not executor.robot.is_in_control and time.time() < deadline:
             time.sleep(0.005)
         time.sleep(after_s)
+        while np.linalg.norm(executor.fingertip() - start) < moved_m and time.time() < deadline:
+            time.sleep(0.005)
         action()
 
     thread = threading.Thread(target=wait_then_act, daemon=True)
