@@ -150,24 +150,32 @@ def _yawed(quat_wxyz, yaw: float) -> np.ndarray:
     return np.array([c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w])
 
 
+def _near_goal_clouds(twin, episode: int, shift_m: tuple[float, float], yaw_deg: float):
+    """Seed 5's ``episode``: its goal cloud, and the cloud of the object at its goal moved by
+    ``shift_m`` (x, y) and turned ``yaw_deg`` about the vertical; the asset and the true goal pose."""
+    cell, world, assets, cams, background = twin
+    rng = np.random.default_rng(0)
+    world.rng = np.random.default_rng(episode)
+    asset, _, goal = sample_episode(world, assets, "6d", np.random.default_rng(episode_seed(5, episode)))
+    world.load(asset)
+    world.reset_arm()
+    T_goal = world.place_object(*goal)
+    goal_points = segment(cams.capture(), background, cell, rng).obj_points
+    pos = np.array(goal[0], float) + np.array([*shift_m, 0.0])
+    world.place_object(pos, _yawed(np.array(goal[1], float), np.deg2rad(yaw_deg)))
+    current = segment(cams.capture(), background, cell, rng).obj_points
+    return asset, goal_points, current, T_goal
+
+
 @pytest.mark.parametrize(("episode", "name"), [(38, "bowl_03"), (47, "bowl_02")])
 def test_a_bowl_turned_about_its_axis_registers_with_the_least_motion(twin, episode, name):
     """An upright bowl at its goal, moved 5 mm and turned 120° about its axis: up to its symmetry it
     is 5 mm from the goal. Every turn about the axis scores alike, so the best-scoring ICP starts
     can all be turned and each fit stays where it starts (1.5–2 cm of motion read as distance); the
     start without a turn finds the nearest pose."""
-    cell, world, assets, cams, background = twin
-    rng = np.random.default_rng(0)
-    world.rng = np.random.default_rng(episode)
-    asset, _, goal = sample_episode(world, assets, "6d", np.random.default_rng(episode_seed(5, episode)))
+    cell, world, *_ = twin
+    asset, goal_points, current, T_goal = _near_goal_clouds(twin, episode, (0.005, 0.0), 120.0)
     assert asset.name == name
-    world.load(asset)
-    world.reset_arm()
-    T_goal = world.place_object(*goal)
-    goal_points = segment(cams.capture(), background, cell, rng).obj_points
-    pos = np.array(goal[0], float) + np.array([0.005, 0.0, 0.0])
-    world.place_object(pos, _yawed(np.array(goal[1], float), np.deg2rad(120.0)))
-    current = segment(cams.capture(), background, cell, rng).obj_points
     reg = register(current, goal_points, "6d", seed=episode, cameras=cell.cameras)
     assert abs(reg.distance - true_distance(world, T_goal)) < 0.003
 
@@ -206,18 +214,9 @@ def test_registration_to_the_model_reads_near_the_goal_through_the_views(twin, m
     import robot.model_registration as model_registration
     from robot.model_registration import ModelRegistration, ObjectModel
 
-    cell, world, assets, cams, background = twin
-    rng = np.random.default_rng(0)
-    world.rng = np.random.default_rng(episode)
-    asset, _, goal = sample_episode(world, assets, "6d", np.random.default_rng(episode_seed(5, episode)))
+    cell, world, *_ = twin
+    asset, goal_points, current, T_goal = _near_goal_clouds(twin, episode, (0.014, 0.014), 10.0)
     assert asset.name == name
-    world.load(asset)
-    world.reset_arm()
-    T_goal = world.place_object(*goal)
-    goal_points = segment(cams.capture(), background, cell, rng).obj_points
-    pos = np.array(goal[0], float) + np.array([0.014, 0.014, 0.0])
-    world.place_object(pos, _yawed(np.array(goal[1], float), np.deg2rad(10.0)))
-    current = segment(cams.capture(), background, cell, rng).obj_points
     true_d = true_distance(world, T_goal)
 
     def error() -> float:
