@@ -446,6 +446,7 @@ class Deployment:
                     mismatch=seg.mismatch,
                     iou=rec.iou,
                     registration_error_m=rec.registration_error,
+                    registration_add_m=rec.registration_add,
                     true_distance_m=rec.true_distance,
                 )
                 check_registration(

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+FLOW_OFF_M = 0.01  # summary: a step's flow off the true one by this much (ADD on the object's surface)
+
 
 @dataclass
 class StepRecord:
@@ -78,6 +80,15 @@ class SessionResult:
             "primitives": sum(e.steps for e in eps),
             "mean_iou": mean([s.iou for s in self.steps]),
             "mean_registration_error_m": mean([s.registration_error for s in self.steps]),
+            # the flow's transform off the true one by 1 cm or more on the object's surface (ADD): a
+            # symmetric or nearly symmetric goal pose that reads the same distance but moves each
+            # point elsewhere than training's flow would
+            "flow_off_1cm": mean(
+                [
+                    None if s.registration_add is None else float(s.registration_add >= FLOW_OFF_M)
+                    for s in self.steps
+                ]
+            ),
             "mean_registration_rmse_m": mean([s.rmse for s in self.steps]),
             "mean_step_s": mean([s.seconds for s in timed]),
             "mean_perception_s": mean([s.perception_s for s in self.steps]),
@@ -116,6 +127,8 @@ def summary_lines(res: SessionResult) -> list[tuple[str, str]]:
         rows.append(("segmentation IoU (twin)", f"{s['mean_iou']:.3f}"))
     if s["mean_registration_error_m"] is not None:
         rows.append(("registration error ADD-S (twin)", f"{s['mean_registration_error_m'] * 1000:.1f} mm"))
+    if s["flow_off_1cm"] is not None:
+        rows.append(("flows off the true one by 1 cm+ (ADD, twin)", pct(s["flow_off_1cm"])))
     if s["mean_registration_rmse_m"] is not None:
         rows.append(("registration inlier RMS", f"{s['mean_registration_rmse_m'] * 1000:.1f} mm"))
     rows += [

@@ -138,6 +138,7 @@ def test_true_perception_observes_the_twin_like_the_training_env(tiny_model, tmp
     s = res.summary()
     # (ADD-S against the exact goal: the nearest symmetric goal is a turn the surface maps onto itself)
     assert s["mean_iou"] == pytest.approx(1.0) and s["mean_registration_error_m"] < 0.001
+    assert s["flow_off_1cm"] == 0.0  # the true flow, not only its size
     for e in res.episodes:
         assert e.success == e.true_success and e.distance == pytest.approx(e.true_distance, abs=1e-6)
     env = BinEnv(objects="cube", goals="planar")
@@ -286,3 +287,17 @@ def test_ladder_command_runs_the_same_episodes_on_each_rung(tiny_model, tmp_path
     bad = CliRunner().invoke(app, ["deploy", "ladder", "--model", str(tiny_model), "--rungs", "sim"])
     said = " ".join(bad.output.replace("│", " ").split())  # the message as one line, out of its box
     assert bad.exit_code == 2 and "rungs are env, env-render, twin-true, twin-cameras, twin" in said
+
+
+def test_the_summary_counts_the_flows_off_the_true_one(tmp_path):
+    """A twin step whose flow transform moves the object's surface 1 cm or more from where the true
+    flow does (ADD) counts, whatever distance it reads; steps without the truth do not."""
+    from robot.report import SessionResult, StepRecord, summary_lines
+
+    res = SessionResult(tmp_path)
+    res.steps = [
+        StepRecord(0, i, 0.1, 0.0, 1.0, 100, registration_add=add)
+        for i, add in enumerate((0.002, 0.015, None, 0.03))
+    ]
+    assert res.summary()["flow_off_1cm"] == pytest.approx(2 / 3)
+    assert ("flows off the true one by 1 cm+ (ADD, twin)", "67%") in summary_lines(res)
