@@ -689,21 +689,29 @@ class Deployment:
         background grid (``sim.observe``, in the bin frame, moved to the cell's bin), and
         :meth:`_true_registration` in place of a registration."""
         w = self.world
-        T_obj = w.object_T()
         to_bin = np.eye(4)
         to_bin[:3, 3] = -self.cell.bin_center
-        views = bin_frame_views(self.cell.cameras, self.cell.bin_center)
-        p, n = camera_visible_surface(w.asset.surface_points, w.asset.surface_normals, to_bin @ T_obj, views)
-        offset = self.cell.bin_center.astype(np.float32)
         masks = [w.true_mask(i) for i in range(len(self.cell.cameras))]
-        seg = Segmented(
-            (p + offset).astype(np.float32),
-            n.astype(np.float32),
-            bin_background_points() + offset,
+        seg = self._mesh_seen(
+            w.asset.surface_points,
+            w.asset.surface_normals,
+            to_bin @ w.object_T(),
+            bin_background_points() + self.cell.bin_center.astype(np.float32),
             masks,
             [0.0] * len(masks),
         )
         return seg, self._true_registration()
+
+    def _mesh_seen(self, points, normals, T_bin: np.ndarray, bg_points, masks, mismatch) -> Segmented:
+        """The training observation of a mesh (``points, normals (K, 3)``, object frame) at pose
+        ``T_bin (4, 4)`` (object → bin frame): the samples the cell's cameras see (``sim.observe``),
+        moved to the base frame, with the given background, masks and mismatch."""
+        views = bin_frame_views(self.cell.cameras, self.cell.bin_center)
+        p, n = camera_visible_surface(points, normals, T_bin, views)
+        if len(p) < 10:
+            raise PerceptionError("the object's mesh shows fewer than 10 points to the cameras")
+        offset = self.cell.bin_center.astype(np.float32)
+        return Segmented((p + offset).astype(np.float32), n.astype(np.float32), bg_points, masks, mismatch)
 
     def _register_to_model(self, seg: Segmented, goal: Goal, step: int) -> Registration:
         """``registration="model"``: the step's cloud through the object's mesh to the goal cloud (the
@@ -725,12 +733,8 @@ class Deployment:
         cameras'. The pose is ~2 mm off where the fit agrees (``fit_pose``); a fit that does not is
         refused before (``check_registration``)."""
         mr = self._model_registration[1]
-        p, n = camera_visible_surface(mr.model.points, mr.model.normals, mr.last, mr.views)
-        if len(p) < 10:
-            raise PerceptionError("the fitted model shows fewer than 10 points to the cameras")
-        offset = self.cell.bin_center
-        return Segmented(
-            (p + offset).astype(np.float32), n.astype(np.float32), seg.bg_points, seg.masks, seg.mismatch
+        return self._mesh_seen(
+            mr.model.points, mr.model.normals, mr.last, seg.bg_points, seg.masks, seg.mismatch
         )
 
     def _true_registration(self) -> Registration:

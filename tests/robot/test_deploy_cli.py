@@ -108,6 +108,16 @@ def test_model_registration_on_a_cell_needs_a_readable_object_mesh(tiny_model, t
     assert r.returncode == 1 and "--object-mesh is for --registration model" in one_line_error(r)
 
 
+def test_the_cli_choices_are_the_loops():
+    """The typer enums restate ``robot.loop``'s choices (kept apart so that ``hydo --help`` does not
+    import the deploy loop): they must not drift."""
+    from hydo_cli.deploy import Observe, Registration
+    from robot.loop import OBSERVATIONS, REGISTRATIONS
+
+    assert tuple(o.value for o in Observe) == OBSERVATIONS
+    assert tuple(r.value for r in Registration) == REGISTRATIONS
+
+
 def test_model_observation_needs_model_registration(tiny_model, tmp_path):
     r = hydo(
         "deploy",
