@@ -17,7 +17,11 @@ episodes (``hydo eval --seed``'s):
 - ``render``: the deploy path's observation;
 - ``mesh-render-bg``: the training observation's object samples with the rendered *background*
   (back-projected bin pixels) instead of the training's fixed grid on the bin's surfaces;
-- ``render-grid-bg``: the deploy path's object points and normals with the training's background grid.
+- ``render-grid-bg``: the deploy path's object points and normals with the training's background grid;
+- ``mesh-pose-noise``: the training observation seen from a pose off the true one, as model
+  registration's fit is (``--pose-noise-mm`` / ``--pose-noise-deg``, normal per axis): the object's
+  samples moved by the error and the goal flow from that pose to a goal pose off the same way (drawn
+  once per goal); reward and success stay the truth's. What the fitted pose alone costs the policy.
 
 ``mesh`` → ``mesh-seen`` is what the rest of the rendered coverage costs; ``render-mesh-normals`` → ``render`` is what PCA
 normals cost. Per variant: success, per move / flip and per object.
@@ -45,13 +49,16 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
 
 from hydo_cli.envs import make_envs  # noqa: E402
 from hydo_cli.policies import load_policy  # noqa: E402
 from hydo_cli.report import goal_kind_breakdown  # noqa: E402
 from hydo_cli.rollout import run_episodes, summarize  # noqa: E402
 from sim.atomic import atomic_write_text  # noqa: E402
+from sim.contract import SymmetricGoals, build_observation, transform_points  # noqa: E402
 from sim.depth import NORMAL_K, estimate_normals  # noqa: E402
 from sim.observe import MeshObserver  # noqa: E402
 
@@ -64,6 +71,7 @@ VARIANTS = (
     "render",
     "mesh-render-bg",
     "render-grid-bg",
+    "mesh-pose-noise",
 )
 SEEN_M = 0.005  # a mesh sample this close to a rendered point is on the surface the cameras see
 
@@ -100,6 +108,46 @@ class HybridObserver:
         self.render.close()
 
 
+def _pose_error(rng, sigma_m: float, sigma_deg: float) -> np.ndarray:
+    """A (4, 4) object-frame pose error: rotation vector and translation, normal per axis."""
+    E = np.eye(4)
+    E[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * np.deg2rad(sigma_deg)).as_matrix()
+    E[:3, 3] = rng.normal(size=3) * sigma_m
+    return E
+
+
+def observe_from_a_pose_off(env, rng, sigma_m: float, sigma_deg: float) -> None:
+    """``mesh-pose-noise``: ``env``'s observation as from a fitted pose (see the module docstring)."""
+    goal_error: dict = {}
+
+    def _observe() -> dict:
+        env._refresh_goal()  # the true goal and the symmetries, for reward and success
+        obj_p, obj_n, bg = env.observer.segmented_clouds(env.scene)
+        T = env.scene.object_T()
+        T_fit = T @ _pose_error(rng, sigma_m, sigma_deg)
+        moved = T_fit @ np.linalg.inv(T)  # world frame: true pose -> fitted pose
+        key = env.T_goal.tobytes()
+        if key not in goal_error:
+            goal_error.clear()
+            goal_error[key] = env.T_goal @ _pose_error(rng, sigma_m, sigma_deg)
+        asset = env.scene.asset
+        goals = SymmetricGoals(goal_error[key], asset.surface_points, env._symmetries[asset.name])
+        obs = build_observation(
+            transform_points(moved, obj_p).astype(np.float32),
+            (obj_n @ moved[:3, :3].T).astype(np.float32),
+            bg,
+            T_fit,
+            goals.nearest(T_fit),
+            env.n_obj,
+            env.n_bg,
+            env.np_random,
+        )
+        env._obs = obs
+        return obs
+
+    env._observe = _observe
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", required=True, help="exported model folder or training run (as hydo eval)")
@@ -109,6 +157,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--json", type=Path)
+    ap.add_argument(
+        "--pose-noise-mm", type=float, default=2.0, help="mesh-pose-noise: translation σ per axis"
+    )
+    ap.add_argument("--pose-noise-deg", type=float, default=2.0, help="mesh-pose-noise: rotation σ per axis")
     args = ap.parse_args()
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     if bad := [v for v in variants if v not in VARIANTS]:
@@ -121,13 +173,16 @@ def main() -> None:
             args.objects,
             args.goals,
             0,
-            "mesh" if v in ("mesh", "mesh-all") else "render",
+            "mesh" if v in ("mesh", "mesh-all", "mesh-pose-noise") else "render",
             1,
             lp.n_obj,
             lp.n_bg,
         )
         if v == "mesh-all":
             env.observer = MeshObserver(cameras=False)
+        elif v == "mesh-pose-noise":
+            rng = np.random.default_rng(args.seed)
+            observe_from_a_pose_off(env, rng, args.pose_noise_mm / 1000, args.pose_noise_deg)
         elif v not in ("mesh", "render"):
             env.observer = HybridObserver(v, env.observer)
         t0 = time.perf_counter()

@@ -45,11 +45,19 @@ CASES = {
             "--episodes",
             "1",
             "--variants",
-            "mesh-all,mesh-pca,render-mesh-normals,mesh-render-bg,render-grid-bg",
+            "mesh-all,mesh-pca,render-mesh-normals,mesh-render-bg,render-grid-bg,mesh-pose-noise",
         ],
         lambda d: (
             set(d)
-            == {"mesh-all", "mesh-pca", "render-mesh-normals", "mesh-render-bg", "render-grid-bg", "meta"}
+            == {
+                "mesh-all",
+                "mesh-pca",
+                "render-mesh-normals",
+                "mesh-render-bg",
+                "render-grid-bg",
+                "mesh-pose-noise",
+                "meta",
+            }
             and len(d["mesh-all"]["successes"]) == 1
         ),
     ),
@@ -149,3 +157,30 @@ def test_registration_bench_through_the_object_model(tmp_path):
         s = data[case]["all"]
         assert s["n"] == 2 and s["refused"] == 0
         assert s["distance_error_p90_mm"] < 10 and s["distance_error_over_1cm"] == 0
+
+
+def test_render_gap_pose_noise_observes_from_a_pose_off_the_true_one():
+    """``bench/render_gap.py``'s ``mesh-pose-noise``: with no error it is the training observation bit
+    for bit; with 3 mm / 3° the object's points move by millimetres and the flow changes with them."""
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    from render_gap import observe_from_a_pose_off
+
+    from hydo_cli.envs import make_envs
+
+    def first_obs(sigma_m: float, sigma_deg: float, hooked: bool) -> dict:
+        (env,) = make_envs("train", "6d", 0, "mesh", 1)
+        if hooked:
+            observe_from_a_pose_off(env, np.random.default_rng(0), sigma_m, sigma_deg)
+        obs, _ = env.reset(seed=7)
+        env.close()
+        return obs
+
+    plain = first_obs(0.0, 0.0, False)
+    for key, value in first_obs(0.0, 0.0, True).items():
+        assert np.array_equal(value, plain[key]), key
+    off = first_obs(0.003, 3.0, True)
+    shift = np.linalg.norm(off["points"] - plain["points"], axis=-1)
+    moved = shift[shift > 0]
+    assert len(moved) > 0 and 0.0005 < np.median(moved) < 0.02
