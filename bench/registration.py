@@ -16,8 +16,9 @@ cloud, as ``hydo deploy capture-goal`` records it), then captured at two more po
 
 For each: refused or not (the cell's ``registration_max_rmse`` / ``registration_min_inliers`` /
 ``registration_min_overlap``), the inlier fraction and the overlap the registration implies, ADD-S
-of the estimated transform against the true one, and (``near``) whether the 3 cm verdict agrees
-with the truth. The deploy loop's verdict (``Registration.verdict`` with the cell's success margin) is counted
+of the estimated transform against the true one, its ADD (``flow_add``: the goal flow's error point
+for point, which ADD-S does not see on symmetric and nearly symmetric objects), and (``near``)
+whether the 3 cm verdict agrees with the truth. The deploy loop's verdict (``Registration.verdict`` with the cell's success margin) is counted
 against the truth: ``false_success`` (it says success, the truth is 3 cm or more), ``false_failure``,
 ``undecided`` (ambiguous or uncertain). Printed as a table, per ``move`` / ``flip`` (goal tilt ≥ 30°)
 and per object.
@@ -56,7 +57,12 @@ from robot.model_registration import ModelRegistration, ObjectModel  # noqa: E40
 from robot.perception import capture_background, segment  # noqa: E402
 from robot.registration import INLIER_M, check_registration, goal_visible, register_checked  # noqa: E402
 from robot.twin import TwinWorld, sample_episode  # noqa: E402
-from robot.twin_metrics import nearest_true_goal, registration_error, true_distance  # noqa: E402
+from robot.twin_metrics import (  # noqa: E402
+    nearest_true_goal,
+    registration_add,
+    registration_error,
+    true_distance,
+)
 from sim.atomic import atomic_write_text  # noqa: E402
 from sim.contract import transform_points  # noqa: E402
 from sim.goals import episode_seed  # noqa: E402
@@ -129,6 +135,8 @@ def measure(cell, world, cams, background, T_goal, goal_points, mode, seed, rng,
         "goal_coverage": reg.goal_coverage,
         "rmse_m": reg.rmse,
         "adds_m": registration_error(world, reg.T, T_goal),
+        # the flow's transform point for point (ADD): what the policy's goal flow is off by
+        "add_m": registration_add(world, reg.T, T_goal),
         "distance_m": reg.distance,
         "true_distance_m": true_d,
         "verdict_agrees": (reg.distance < SUCCESS_M) == (true_d < SUCCESS_M),
@@ -158,6 +166,8 @@ def summarise(rows: list[dict]) -> dict:
         "adds_median_mm": float(np.median(err) * 1000),
         "adds_p90_mm": float(np.quantile(err, 0.9) * 1000),
         "adds_over_1cm": int((err > 0.01).sum()),
+        "flow_add_median_mm": float(np.median([r["add_m"] for r in rows]) * 1000),
+        "flow_add_over_1cm": int(sum(r["add_m"] > 0.01 for r in rows)),
         "verdict_agrees": float(np.mean([r["verdict_agrees"] for r in ok])) if ok else None,
         # the loop's verdict against the truth
         "false_success": sum(r["verdict"] == "success" and r["true_distance_m"] >= SUCCESS_M for r in ok),
@@ -266,6 +276,8 @@ def main() -> None:
         "adds_median_mm",
         "adds_p90_mm",
         "adds_over_1cm",
+        "flow_add_median_mm",
+        "flow_add_over_1cm",
         "distance_error_p90_mm",
         "distance_error_over_1cm",
     )
