@@ -158,6 +158,11 @@ def main() -> None:
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--json", type=Path)
     ap.add_argument(
+        "--policy-seed",
+        type=int,
+        help="the policy's sampling seed (default: --seed, as hydo eval): the same episodes, other draws",
+    )
+    ap.add_argument(
         "--pose-noise-mm", type=float, default=2.0, help="mesh-pose-noise: translation σ per axis"
     )
     ap.add_argument("--pose-noise-deg", type=float, default=2.0, help="mesh-pose-noise: rotation σ per axis")
@@ -167,7 +172,7 @@ def main() -> None:
         ap.error(f"unknown variants {bad}; choose from {list(VARIANTS)}")
 
     results: dict = {}
-    lp = load_policy(args.model, seed=args.seed)
+    lp = load_policy(args.model, seed=args.seed if args.policy_seed is None else args.policy_seed)
     for v in variants:
         (env,) = make_envs(
             args.objects,

@@ -49,6 +49,8 @@ CASES = {
             str(ROOT / "models" / "hydo-cm-6d"),
             "--episodes",
             "1",
+            "--policy-seed",
+            "9",
             "--variants",
             "mesh-all,mesh-pca,render-mesh-normals,mesh-render-bg,render-grid-bg,mesh-pose-noise",
         ],
