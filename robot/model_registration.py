@@ -13,16 +13,18 @@ When the cell knows the object's mesh (in the twin: the episode's object; on a c
 1. pose: trimmed ICP of the cloud onto the model's surface samples (the complete surface, so every
    observed point has a counterpart) from the distinct starts of :func:`robot.registration.icp_solutions`,
    plus the previous pose when there is one;
-2. which fit: the one whose *camera-visible* model surface (``sim.observe.camera_visible_surface``,
-   the training observation's z-buffer) agrees best with the cloud both ways. A near-symmetric
-   wrong pose shows surface where the cloud has none, or none where it has some;
+2. which fit: the best few refined against the model's *camera-visible* surface
+   (``sim.observe.camera_visible_surface``, the training observation's z-buffer), each also from
+   its pose settled onto the bin floor, and the one that agrees best with the cloud both ways. A
+   near-symmetric wrong pose shows surface where the cloud has none, or none where it has some;
 3. the flow: to the nearest of the goal pose's symmetric poses (``sim.symmetry``, the same rule as
    training's reward, ``sim.contract.symmetric_goal``), and the distance is the reward's quantity
    over the model's surface samples.
 
 The goal's pose is fitted once per episode with the wide search; the current pose at every step with
-the fast one. With ``hydo deploy --observe model`` (the default with this registration) the policy
-then observes the mesh at the fitted pose, as in training (``robot.loop``).
+the fast one, and again wide when that fit agrees less than the goal's did. With
+``hydo deploy --observe model`` (the default with this registration) the policy then observes the
+mesh at the fitted pose, as in training (``robot.loop``).
 What a user captures for the goal (``capture-goal``'s cloud) is the same in both
 registrations; only the mesh is added.
 """
@@ -168,10 +170,10 @@ def fit_pose(
     ]
     n_refined = REFINED_FITS if search == "fast" else WIDE_REFINED_FITS
     first = sorted(((agreement_of(T), i) for i, T in enumerate(fits)), reverse=True)[:n_refined]
-    starts = [fits[i] for _, i in first]
-    starts += [T for T in (settled_on_floor(T, model.points) for T in starts) if T is not None]
+    refine_from = [fits[i] for _, i in first]
+    refine_from += [T for T in (settled_on_floor(T, model.points) for T in refine_from) if T is not None]
     scored = []
-    for T in starts:
+    for T in refine_from:
         T = _visible_icp(src, src_tree, model, T, views)
         scored.append((agreement_of(T), T))
     scored.sort(key=lambda s: -s[0])
