@@ -396,6 +396,15 @@ def ladder_cmd(
             "then observes at the fitted pose: --observe model).",
         ),
     ] = "views",
+    env_draws: Annotated[
+        int,
+        typer.Option(
+            "--env-draws",
+            min=1,
+            help="Draws of the policy's sampling on the env rung: its success is one draw, the others "
+            "give the spread a lower rung's loss is read against (a few seconds each).",
+        ),
+    ] = 5,
 ) -> None:
     """Where a policy's success is lost between training and the cell: the sim → twin ladder.
 
@@ -431,7 +440,7 @@ def ladder_cmd(
     t0 = time.time()
     try:
         results = run_ladder(
-            model, episodes, seed, folder, chosen, objects, jobs, Registration(registration).value
+            model, episodes, seed, folder, chosen, objects, jobs, Registration(registration).value, env_draws
         )
     except KeyboardInterrupt:
         err.print("interrupted")
@@ -468,6 +477,13 @@ def ladder_cmd(
         "them: near (step limit within 3-4.5 cm), limit (step limit), left (the bin), refused (a refusal; "
         "kinds below); force: contact-force stops; reflex: reflexes (+ episodes ended by the reflex limit)"
     )
+    for s in doc["rungs"]:
+        if "policy_draws" in s:
+            rates = s["policy_draws"]
+            out.print(
+                f"{s['rung']} over {len(rates)} draws of the policy's sampling: mean "
+                f"{s['policy_draws_mean']:.1%} ({min(rates):.0%}-{max(rates):.0%}); the table's is the first"
+            )
     for s in doc["rungs"]:
         kinds = {k: v for k, v in s["causes"].items() if k.endswith(("Error", "Rejected"))}
         if kinds or s["refused_primitives"]:

@@ -14,6 +14,11 @@ rungs, each adding one difference between training and the robot cell:
 ``twin``       the twin with the full deploy pipeline: cameras, segmentation, registration
 =============  ===============================================================================
 
+The policy samples its motions, so each rung's success is one draw of that sampling on its
+episodes; the ``env`` rung is also rerun with ``env_draws - 1`` other draws (policy seeds
+``seed + 1000·k``, a few seconds each) and reports their mean and range: the yardstick's own spread
+(±2-3 points on 100 episodes), against which a lower rung's loss is read.
+
 Per rung: success by the true poses, mean final distance (the reward's mean goal flow), and what
 ended the failed episodes (``near_miss``: the step limit with the object within 3-4.5 cm; the step
 limit further away; the object leaving the bin; refusals by kind; the twin's reflex limit), with
@@ -111,21 +116,32 @@ def _cause_from_distance(cause: str, success: bool, distance: float) -> str:
     return cause
 
 
-def run_env_rung(rung: str, model: Path, n: int, seed: int, objects: str, goals: str) -> RungResult:
-    """``env`` / ``env-render``: the training env (``hydo eval``'s episodes) with the ONNX policy."""
+def run_env_rung(
+    rung: str, model: Path, n: int, seed: int, objects: str, goals: str, env_draws: int = 1
+) -> RungResult:
+    """``env`` / ``env-render``: the training env (``hydo eval``'s episodes) with the ONNX policy;
+    ``env``: also ``env_draws - 1`` other draws of the policy's sampling on the same episodes."""
     from hydo_cli.envs import make_envs
     from hydo_cli.policies import load_onnx_policy
     from hydo_cli.rollout import run_episodes
 
+    def episodes(policy_seed: int) -> list:
+        loaded = load_onnx_policy(model, policy_seed)
+        obs = "render" if rung == "env-render" else "mesh"
+        envs = make_envs(objects, goals, 0, obs, 1, loaded.n_obj, loaded.n_bg)
+        try:
+            return run_episodes(envs, loaded.policy, n, seed)
+        finally:
+            for e in envs:
+                e.close()
+
     t0 = time.perf_counter()
-    loaded = load_onnx_policy(model, seed)
-    obs = "render" if rung == "env-render" else "mesh"
-    envs = make_envs(objects, goals, 0, obs, 1, loaded.n_obj, loaded.n_bg)
-    try:
-        results = run_episodes(envs, loaded.policy, n, seed)
-    finally:
-        for e in envs:
-            e.close()
+    results = episodes(seed)  # hydo eval's draw: the policy seeded as the episodes
+    extra = {}
+    if rung == "env" and env_draws > 1:
+        rates = [float(np.mean([r.success for r in results]))]
+        rates += [float(np.mean([r.success for r in episodes(seed + 1000 * k)])) for k in range(1, env_draws)]
+        extra = {"policy_draws": rates, "policy_draws_mean": float(np.mean(rates))}
     eps = [
         LadderEpisode(
             r.object,
@@ -143,6 +159,7 @@ def run_env_rung(rung: str, model: Path, n: int, seed: int, objects: str, goals:
         refused_primitives=sum(r.rejected for r in results),
         force_stops=sum(r.force_stops for r in results),  # the training hand's stop (FORCE_STOP_N)
         seconds=time.perf_counter() - t0,
+        extra=extra,
     )
 
 
@@ -215,9 +232,9 @@ def run_twin_rung(
 
 
 def _run_rung(args) -> RungResult:
-    rung, model, n, seed, objects, goals, log_dir, registration = args
+    rung, model, n, seed, objects, goals, log_dir, registration, env_draws = args
     if rung.startswith("env"):
-        return run_env_rung(rung, model, n, seed, objects, goals)
+        return run_env_rung(rung, model, n, seed, objects, goals, env_draws)
     return run_twin_rung(rung, model, n, seed, objects, log_dir / rung, registration)
 
 
@@ -230,16 +247,21 @@ def run_ladder(
     objects: str | None = None,
     jobs: int = 2,
     registration: str = "views",
+    env_draws: int = 1,
 ) -> list[RungResult]:
     """Run ``rungs`` of the ladder for an exported ``model`` (``jobs`` rungs at a time, one process
     each); returns them in ladder order. Twin sessions are logged under ``log_dir/<rung>``;
-    ``registration``: the ``twin`` rung's (``hydo deploy --registration``)."""
+    ``registration``: the ``twin`` rung's (``hydo deploy --registration``); ``env_draws``: draws of
+    the policy's sampling on the ``env`` rung (the first is the one its episodes are compared on)."""
     import json
 
     manifest = json.loads((Path(model) / "manifest.json").read_text())
     objects = objects or str(manifest.get("objects") or "train")
     goals = str(manifest.get("goals", "6d"))
-    tasks = [(r, Path(model), episodes, seed, objects, goals, Path(log_dir), registration) for r in rungs]
+    tasks = [
+        (r, Path(model), episodes, seed, objects, goals, Path(log_dir), registration, env_draws)
+        for r in rungs
+    ]
     if jobs <= 1:
         return [_run_rung(t) for t in tasks]
     # slowest first (the twin with cameras), so the rungs finish close together

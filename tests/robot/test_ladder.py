@@ -268,15 +268,21 @@ def test_ladder_command_runs_the_same_episodes_on_each_rung(tiny_model, tmp_path
             str(out),
             "--json",
             str(tmp_path / "l.json"),
+            "--env-draws",
+            "3",
         ],
     )
     assert r.exit_code == 0, r.output
     assert "sim -> twin ladder" in r.output
+    assert "env over 3 draws of the policy's sampling" in " ".join(r.output.split())
     doc = json.loads((out / "ladder.json").read_text())
     assert doc == json.loads((tmp_path / "l.json").read_text())
     env, twin = doc["rungs"]
     assert (env["rung"], twin["rung"]) == ("env", "twin-true")  # ladder order, whatever was asked
     assert env["episodes"] == twin["episodes"] == 2 and "lost_vs_previous" in twin
+    # the env rung's spread: its own draw first, then two more of the policy's sampling
+    assert len(env["policy_draws"]) == 3 and env["policy_draws"][0] == env["success_rate"]
+    assert env["policy_draws_mean"] == np.mean(env["policy_draws"]) and "policy_draws" not in twin
     for rung in doc["rungs"]:
         failed = sum(not e["success"] for e in doc["episodes"][rung["rung"]])
         assert sum(rung["causes"].values()) == failed
