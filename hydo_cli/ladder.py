@@ -137,11 +137,16 @@ def run_env_rung(
 
     t0 = time.perf_counter()
     results = episodes(seed)  # hydo eval's draw: the policy seeded as the episodes
+    seconds = time.perf_counter() - t0
     extra = {}
     if rung == "env" and env_draws > 1:
         rates = [float(np.mean([r.success for r in results]))]
         rates += [float(np.mean([r.success for r in episodes(seed + 1000 * k)])) for k in range(1, env_draws)]
-        extra = {"policy_draws": rates, "policy_draws_mean": float(np.mean(rates))}
+        extra = {
+            "policy_draws": rates,
+            "policy_draws_mean": float(np.mean(rates)),
+            "policy_draws_s": round(time.perf_counter() - t0 - seconds, 1),
+        }
     eps = [
         LadderEpisode(
             r.object,
@@ -158,7 +163,7 @@ def run_env_rung(
         eps,
         refused_primitives=sum(r.rejected for r in results),
         force_stops=sum(r.force_stops for r in results),  # the training hand's stop (FORCE_STOP_N)
-        seconds=time.perf_counter() - t0,
+        seconds=seconds,
         extra=extra,
     )
 
