@@ -127,11 +127,12 @@ def observe_from_a_pose_off(env, rng, sigma_m: float, sigma_deg: float) -> None:
         T_fit = T @ _pose_error(rng, sigma_m, sigma_deg)
         moved = T_fit @ np.linalg.inv(T)  # world frame: true pose -> fitted pose
         key = env.T_goal.tobytes()
-        if key not in goal_error:
+        if key not in goal_error:  # a new goal: its pose off once, its symmetric poses ready (as the env)
+            asset = env.scene.asset
+            T_goal_off = env.T_goal @ _pose_error(rng, sigma_m, sigma_deg)
             goal_error.clear()
-            goal_error[key] = env.T_goal @ _pose_error(rng, sigma_m, sigma_deg)
-        asset = env.scene.asset
-        goals = SymmetricGoals(goal_error[key], asset.surface_points, env._symmetries[asset.name])
+            goal_error[key] = SymmetricGoals(T_goal_off, asset.surface_points, env._symmetries[asset.name])
+        goals = goal_error[key]
         obs = build_observation(
             transform_points(moved, obj_p).astype(np.float32),
             (obj_n @ moved[:3, :3].T).astype(np.float32),

@@ -164,6 +164,9 @@ def test_registration_bench_through_the_object_model(tmp_path):
         s = data[case]["all"]
         assert s["n"] == 2 and s["refused"] == 0
         assert s["distance_error_p90_mm"] < 10 and s["distance_error_over_1cm"] == 0
+    # the goal's own fit, one per episode, against the true goal pose
+    assert data["goal_fit"]["n"] == 2 and data["goal_fit"]["add_median_mm"] < 10
+    assert all(0 <= e["goal_fit_add_m"] < 0.05 for e in data["episodes"])
 
 
 def test_render_gap_pose_noise_observes_from_a_pose_off_the_true_one():
@@ -191,3 +194,4 @@ def test_render_gap_pose_noise_observes_from_a_pose_off_the_true_one():
     shift = np.linalg.norm(off["points"] - plain["points"], axis=-1)
     moved = shift[shift > 0]
     assert len(moved) > 0 and 0.0005 < np.median(moved) < 0.02
+    assert not np.array_equal(off["features"], plain["features"])  # the goal flow, from the pose off
