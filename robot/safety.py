@@ -41,6 +41,13 @@ MAX_RECOVERIES_PER_EPISODE = 3  # the fourth reflex in an episode stops the run
 MAX_RECOVERIES_PER_PRIMITIVE = 1
 HOME_PATH_SAMPLES = 11  # the joint-space move home is checked at this many points
 HOME_PATH_DIP_M = 0.02  # ... and may dip at most this far below the transit height
+#: How far outside the workspace box a reflex or force stop may have left the fingertip for the
+#: straight-up retract to start there (metres). The box is a bound on *planned* targets, inset from the
+#: bin walls (``robot.cell`` checks it lies inside them); an arm stopped by a reflex can end a
+#: millimetre or two past it (the twin: 1.2 mm at x after a 73 N reflex). Rising straight up from there
+#: keeps x and y, so it moves no further out; refusing it would leave the arm in the bin. Farther out
+#: than this is not a compliance overshoot: a person guides the arm.
+RETRACT_START_TOLERANCE_M = 0.01
 #: Labels of the primitive's waypoints (sim.primitive's geometry).
 WAYPOINT_KINDS = ("approach", "approach", "contact", "push", "push", "push", "retract")
 WAYPOINT_LABELS = (
@@ -179,7 +186,9 @@ class SafetyGate:
     def plan_retract(self, position: np.ndarray, q_now: np.ndarray) -> Plan:
         """Checked retract from ``position`` (3,): straight up to the transit height, then home.
 
-        Used after a reflex, a force stop or a short move: the old waypoints are never resumed.
+        Used after a reflex, a force stop or a short move: the old waypoints are never resumed. The
+        start is where the stop left the arm, which may lie up to ``RETRACT_START_TOLERANCE_M``
+        outside the workspace box; farther out raises ``RobotFaultError``.
         """
         position = np.asarray(position, dtype=np.float64)
         if position.shape != (3,) or not np.all(np.isfinite(position)):
@@ -188,7 +197,7 @@ class SafetyGate:
         up = np.array([position[0], position[1], max(position[2], self.cell.approach_z)])
         targets, kinds, labels, speeds = [], [], [], []
         if position[2] < self.cell.approach_z - 1e-3:
-            check_plan(np.stack([position, up]), self.cell.workspace)
+            self._retract_start_ok(position)
             targets.append(up)
             kinds.append("retract")
             labels.append("retract up")
@@ -199,6 +208,22 @@ class SafetyGate:
         labels.append("home")
         speeds.append(lim.transit_speed)
         return self._finish(None, targets, kinds, labels, speeds, q_now)
+
+    def _retract_start_ok(self, position: np.ndarray) -> None:
+        """Raise ``RobotFaultError`` unless the fingertip ``position`` (3,), where a stop left it, lies
+        within ``RETRACT_START_TOLERANCE_M`` of the workspace box (below its top: the retract only
+        rises, to the transit height, which the cell keeps inside the box)."""
+        ws = self.cell.workspace
+        lo = np.asarray(ws.low) - RETRACT_START_TOLERANCE_M
+        hi = np.asarray(ws.high) + RETRACT_START_TOLERANCE_M
+        for axis, name in enumerate("xyz"):
+            if not lo[axis] <= position[axis] <= hi[axis]:
+                bound = ws.low[axis] if position[axis] < lo[axis] else ws.high[axis]
+                raise RobotFaultError(
+                    f"the fingertip stopped at {name}={position[axis]:.3f} m, "
+                    f"{abs(position[axis] - bound) * 1000:.0f} mm outside the workspace bound {bound:.3f} m: "
+                    "not retracting automatically; guide the arm home in Desk"
+                )
 
     def _finish(self, w, targets, kinds, labels, speeds, q_start) -> Plan:
         targets = np.asarray(targets, dtype=np.float64)

@@ -300,6 +300,26 @@ def test_fourth_reflex_in_an_episode_stops_the_run(rig, monkeypatch):
     assert len(events(rig, "recovery")) == 3
 
 
+def test_retract_starts_where_a_stop_left_the_arm_just_outside_the_workspace(cell):
+    """A reflex can leave the fingertip a millimetre past the workspace box (the twin: x 1.2 mm under its
+    low bound after a 73 N reflex). The straight-up retract must still be planned from there: refusing
+    it stopped a twin evaluation with ``PrimitiveRejected`` and would leave a real arm in the bin.
+    Farther out than the tolerance is a fault a person clears, named in one line."""
+    from robot.safety import RETRACT_START_TOLERANCE_M, SafetyGate
+
+    gate = SafetyGate(cell)
+    lo = np.asarray(cell.workspace.low)
+    start = np.array([lo[0] - 0.0012, 0.0, cell.workspace.floor_z + 0.03])
+    plan = gate.plan_retract(start, cell.home_joints)
+    assert [c.label for c in plan.commands] == ["retract up", "home"]
+    up = np.asarray(plan.commands[0].target)
+    np.testing.assert_allclose(up[:2], start[:2])  # straight up: no further out in x or y
+    assert up[2] == pytest.approx(cell.approach_z)
+    far = start - [RETRACT_START_TOLERANCE_M + 0.01, 0.0, 0.0]
+    with pytest.raises(RobotFaultError, match=r"x=.* mm outside the workspace bound .*guide the arm home"):
+        gate.plan_retract(far, cell.home_joints)
+
+
 def test_silent_false_detected_with_raise_error_and_classified(rig, monkeypatch):
     dep = rig.deployment(max_steps=1)
     push_towards_robot(dep)
