@@ -51,7 +51,8 @@ and `timeout` (how failed episodes ended) and `refused` (failed episodes with at
 primitive; they are counted under their end reason too). With 6D goals, `move` and `flip`: success
 where the goal keeps the object's face up and where it asks for another face up, and each object's
 flips (the JSON's `by_goal` adds start and failed final distances, and flips onto a side against
-flips turning the object over, at 120 deg). Across runs: interquartile mean (IQM,
+flips turning the object over, at 120 deg, and the share of failures that end with another face
+up than the goal's: for flips, the object never turned over). Across runs: interquartile mean (IQM,
 scipy trim_mean 0.25) with a 95% percentile bootstrap CI, over runs stratified by split with 4 or
 more runs per split; with fewer the IQM trims nothing (it is the mean of the runs) and the CI
 resamples episodes within each run.

@@ -101,7 +101,10 @@ def goal_kind_breakdown(results: Sequence) -> dict[str, dict]:
     ``flip_over`` (turned over); a kind without episodes has no row. ``force_stops_success`` /
     ``force_stops_failed``: primitives per episode that the hand's contact-force stop ended
     (``sim.primitive.FORCE_STOP_N``), in the kind's successes and failures (None without any): where
-    failed flips press harder than the stop allows."""
+    failed flips press harder than the stop allows. ``failed_wrong_face``: the share of the kind's
+    failures that end with another face up than the goal's (tilt left ≥ FLIP_TILT_DEG; None without
+    failures): for a flip, the object never turned over (it failed to flip, not to place); for a
+    move, a push knocked it over."""
     out = {}
     kinds = {
         "move": lambda t: t < FLIP_TILT_DEG,
@@ -114,11 +117,13 @@ def goal_kind_breakdown(results: Sequence) -> dict[str, dict]:
         if not rs:
             continue
         failed = [r.final_distance for r in rs if not r.success]
+        failed_tilt = [r.final_tilt_deg for r in rs if not r.success]
         out[kind] = {
             "episodes": len(rs),
             "success_rate": float(np.mean([r.success for r in rs])),
             "mean_start_distance_m": float(np.mean([r.start_distance for r in rs])),
             "median_failed_final_distance_m": float(np.median(failed)) if failed else None,
+            "failed_wrong_face": float(np.mean(np.asarray(failed_tilt) >= FLIP_TILT_DEG)) if failed else None,
             **{
                 f"force_stops_{name}": float(np.mean([r.force_stops for r in group])) if group else None
                 for name, group in (

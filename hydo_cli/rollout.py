@@ -31,6 +31,7 @@ class EpisodeResult:
     start_distance: float = 0.0  # mean goal-flow norm at reset, metres
     goal_tilt_deg: float = 0.0  # how far the goal tilts the object's up direction (~0: move, ≥ 30: flip)
     force_stops: int = 0  # primitives the hand's contact-force stop ended (sim.primitive.FORCE_STOP_N)
+    final_tilt_deg: float = 0.0  # the tilt left at the end: a failed flip still ≥ 30 never turned over
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -90,6 +91,7 @@ def run_episodes(
                     start_distance=s["start"]["distance"],
                     goal_tilt_deg=s["start"].get("goal_tilt_deg", 0.0),
                     force_stops=s["stops"],
+                    final_tilt_deg=info.get("goal_tilt_deg", 0.0),
                 )
                 results[s["ep"]] = r
                 if on_episode is not None:

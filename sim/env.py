@@ -312,6 +312,7 @@ class BinEnv(gym.Env):
             "object": self.scene.asset.name,
             "physics_steps": steps,
             "force_stopped": force_stopped,  # the hand passed the contact-force stop and let go there
+            "goal_tilt_deg": self._goal_tilt_deg(),  # the tilt still left to the goal (reset's: at the start)
             "waypoints": waypoints,
             # poses after the primitive, position (3,) m + quaternion wxyz (4,): hindsight relabelling
             # (models.replay) turns what the object reached into a goal

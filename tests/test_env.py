@@ -103,6 +103,10 @@ def test_info_poses_reproduce_the_observed_goal_flow():
     T_goal = pose_matrix(info["goal_pose"][:3], info["goal_pose"][3:])
     want = goal_flow(obs["points"][:64], T_obj, T_goal)
     np.testing.assert_allclose(obs["features"][:64, 1:], want, atol=1e-5)
+    # the tilt still left after the step (eval's failed flips that never turned over), from the same poses
+    up_goal, up_now = T_goal[:3, :3].T @ [0, 0, 1], T_obj[:3, :3].T @ [0, 0, 1]
+    tilt = np.degrees(np.arccos(np.clip(up_goal @ up_now, -1, 1)))
+    assert info["goal_tilt_deg"] == pytest.approx(tilt, abs=1e-6)
 
 
 def test_reset_reports_how_far_the_goal_tilts_the_object():

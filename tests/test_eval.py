@@ -42,13 +42,25 @@ def test_failure_reasons_count_timeouts_with_refused_primitives_twice():
 
 
 def test_goal_kinds_split_moves_from_flips_at_30_degrees():
-    def tilted(success, tilt, final, force_stops=0):
+    def tilted(success, tilt, final, force_stops=0, final_tilt=0.0):
         return EpisodeResult(
-            "cube", success, 3, -0.1, final, 0, "" if success else "timeout", None, 0.2, tilt, force_stops
+            "cube",
+            success,
+            3,
+            -0.1,
+            final,
+            0,
+            "" if success else "timeout",
+            None,
+            0.2,
+            tilt,
+            force_stops,
+            final_tilt,
         )
 
     results = [tilted(True, 0.0, 0.01), tilted(False, 29.0, 0.05), tilted(True, 90.0, 0.02)]
-    results += [tilted(False, 180.0, 0.08, force_stops=3), tilted(False, 90.0, 0.12, force_stops=1)]
+    # one failed flip never turned over (90 deg still left), the other did and ended off the goal
+    results += [tilted(False, 180.0, 0.08, 3, final_tilt=2.0), tilted(False, 90.0, 0.12, 1, final_tilt=90.0)]
     kinds = goal_kind_breakdown(results)
     assert kinds["move"]["episodes"] == 2 and kinds["move"]["success_rate"] == 0.5
     assert kinds["flip"]["episodes"] == 3 and kinds["flip"]["success_rate"] == 1 / 3
@@ -58,6 +70,9 @@ def test_goal_kinds_split_moves_from_flips_at_30_degrees():
     assert kinds["flip_over"]["episodes"] == 1 and kinds["flip_over"]["success_rate"] == 0.0
     assert kinds["flip"]["force_stops_failed"] == 2.0 and kinds["flip"]["force_stops_success"] == 0.0
     assert kinds["flip_over"]["force_stops_success"] is None  # no success to average over
+    assert kinds["flip"]["failed_wrong_face"] == 0.5 and kinds["flip_side"]["failed_wrong_face"] == 1.0
+    assert kinds["move"]["failed_wrong_face"] == 0.0  # the failed move ended on its own face
+    assert kinds["flip"]["episodes"] and goal_kind_breakdown(results[:1])["move"]["failed_wrong_face"] is None
     assert set(goal_kind_breakdown(results[:1])) == {"move"}  # planar goals: no flip row
 
 
