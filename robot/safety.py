@@ -35,7 +35,14 @@ from robot.errors import (
 from robot.executor import Command, RobotMode
 from robot.libfranka import RECOVERABLE_ERRORS
 from sim.contract import FEATURE_DIM
-from sim.primitive import N_WAYPOINTS, PUSH_SEGMENTS, PrimitiveRejected, check_plan, primitive_waypoints
+from sim.primitive import (
+    N_WAYPOINTS,
+    PUSH_SEGMENTS,
+    PrimitiveRejected,
+    Workspace,
+    check_plan,
+    primitive_waypoints,
+)
 
 MAX_RECOVERIES_PER_EPISODE = 3  # the fourth reflex in an episode stops the run
 MAX_RECOVERIES_PER_PRIMITIVE = 1
@@ -197,7 +204,7 @@ class SafetyGate:
         up = np.array([position[0], position[1], max(position[2], self.cell.approach_z)])
         targets, kinds, labels, speeds = [], [], [], []
         if position[2] < self.cell.approach_z - 1e-3:
-            self._retract_start_ok(position)
+            self._retract_start_ok(position, up)
             targets.append(up)
             kinds.append("retract")
             labels.append("retract up")
@@ -209,21 +216,19 @@ class SafetyGate:
         speeds.append(lim.transit_speed)
         return self._finish(None, targets, kinds, labels, speeds, q_now)
 
-    def _retract_start_ok(self, position: np.ndarray) -> None:
-        """Raise ``RobotFaultError`` unless the fingertip ``position`` (3,), where a stop left it, lies
-        within ``RETRACT_START_TOLERANCE_M`` of the workspace box (below its top: the retract only
-        rises, to the transit height, which the cell keeps inside the box)."""
-        ws = self.cell.workspace
-        lo = np.asarray(ws.low) - RETRACT_START_TOLERANCE_M
-        hi = np.asarray(ws.high) + RETRACT_START_TOLERANCE_M
-        for axis, name in enumerate("xyz"):
-            if not lo[axis] <= position[axis] <= hi[axis]:
-                bound = ws.low[axis] if position[axis] < lo[axis] else ws.high[axis]
-                raise RobotFaultError(
-                    f"the fingertip stopped at {name}={position[axis]:.3f} m, "
-                    f"{abs(position[axis] - bound) * 1000:.0f} mm outside the workspace bound {bound:.3f} m: "
-                    "not retracting automatically; guide the arm home in Desk"
-                )
+    def _retract_start_ok(self, position: np.ndarray, up: np.ndarray) -> None:
+        """Raise ``RobotFaultError`` unless the straight-up retract from ``position`` (3,), where a stop
+        left the fingertip, to ``up`` (3,) passes the workspace gate with the box grown by
+        ``RETRACT_START_TOLERANCE_M`` (the same ``check_plan``; only the box differs)."""
+        ws, tol = self.cell.workspace, RETRACT_START_TOLERANCE_M
+        grown = Workspace(tuple(np.asarray(ws.low) - tol), tuple(np.asarray(ws.high) + tol), ws.floor_z)
+        try:
+            check_plan(np.stack([position, up]), grown)
+        except PrimitiveRejected as e:
+            raise RobotFaultError(
+                f"the fingertip stopped more than {tol * 1000:.0f} mm outside the workspace ({e}): "
+                "not retracting automatically; guide the arm home in Desk"
+            ) from None
 
     def _finish(self, w, targets, kinds, labels, speeds, q_start) -> Plan:
         targets = np.asarray(targets, dtype=np.float64)

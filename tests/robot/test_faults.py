@@ -316,7 +316,10 @@ def test_retract_starts_where_a_stop_left_the_arm_just_outside_the_workspace(cel
     np.testing.assert_allclose(up[:2], start[:2])  # straight up: no further out in x or y
     assert up[2] == pytest.approx(cell.approach_z)
     far = start - [RETRACT_START_TOLERANCE_M + 0.01, 0.0, 0.0]
-    with pytest.raises(RobotFaultError, match=r"x=.* mm outside the workspace bound .*guide the arm home"):
+    with pytest.raises(
+        RobotFaultError,
+        match=r"more than 10 mm outside the workspace .*x=.*below the workspace bound.*guide the arm home",
+    ):
         gate.plan_retract(far, cell.home_joints)
 
 
