@@ -102,6 +102,9 @@ class SweepSpec:
     resume_args: list[str]
     cpus: int  # per trial: workers x threads
     state: dict = field(default_factory=dict)
+    # run_local marks trials from its pool threads: without the lock, a thread that serialised the
+    # state before another's update could write after it, and a finished trial would read as running
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
     # --- sweep.json: each trial's state, written by the driver only -----------------------------
     def load_state(self) -> None:
@@ -112,12 +115,13 @@ class SweepSpec:
             self.state = read_sweep_file(path)
 
     def mark(self, trial: Trial, status: str, **extra) -> None:
-        entry = self.state.setdefault(trial.name, {"attempts": 0})
-        entry.update(status=status, run=str(trial.run), **extra)
-        if status == "running":
-            entry["attempts"] += 1
-        doc = {"command": shlex.join(["hydo", *sys.argv[1:]]), "trials": self.state}
-        atomic_write_text(self.out / "sweep.json", json.dumps(doc, indent=2))
+        with self._lock:  # update and write as one step (see _lock)
+            entry = self.state.setdefault(trial.name, {"attempts": 0})
+            entry.update(status=status, run=str(trial.run), **extra)
+            if status == "running":
+                entry["attempts"] += 1
+            doc = {"command": shlex.join(["hydo", *sys.argv[1:]]), "trials": self.state}
+            atomic_write_text(self.out / "sweep.json", json.dumps(doc, indent=2))
 
     def pending(self) -> list[Trial]:
         return [t for t in self.trials if self.state.get(t.name, {}).get("status") != "done"]

@@ -170,3 +170,29 @@ def test_ray_sweep_resumes_a_killed_trial(tmp_path, tiny):
     assert (out / "logs" / "hydo-cm-s1.log").read_text().count("[hydo sweep ") == 1
     state = json.loads((out / "sweep.json").read_text())["trials"]
     assert all(s["status"] == "done" for s in state.values())
+
+
+def test_trials_marked_done_at_once_from_two_threads_both_stay_done(tmp_path, monkeypatch):
+    """run_local marks trials from its pool threads. A writer that serialised the state before
+    another thread's update must not write after it (CI saw a finished trial read back as running)."""
+    import hydo_cli.sweep as sweep_mod
+
+    real_write = sweep_mod.atomic_write_text
+    first = threading.Event()
+
+    def slow_first_write(path, text):
+        if not first.is_set():  # the first writer is slow (a long fsync): the other one overtakes it
+            first.set()
+            time.sleep(0.3)
+        return real_write(path, text)
+
+    monkeypatch.setattr(sweep_mod, "atomic_write_text", slow_first_write)
+    trials = [sweep_mod.Trial("hydo-cm", s, tmp_path / f"r{s}", tmp_path / f"r{s}.log") for s in (0, 1)]
+    spec = sweep_mod.SweepSpec(tmp_path, trials, [], [], 1)
+    a = threading.Thread(target=spec.mark, args=(trials[0], "done"))
+    a.start()
+    first.wait()
+    spec.mark(trials[1], "done")
+    a.join()
+    state = json.loads((tmp_path / "sweep.json").read_text())["trials"]
+    assert {name: t["status"] for name, t in state.items()} == {"hydo-cm-s0": "done", "hydo-cm-s1": "done"}
