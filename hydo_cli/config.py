@@ -109,6 +109,10 @@ class TrainConfig:
     relabel_future: Fraction = 0.0
     """Hindsight relabelling: the fraction of each sampled batch whose goal becomes the object pose
     after this or a later primitive of its episode (HER's "future" strategy, models.replay)."""
+    flip_share: Fraction | None = None
+    """6D goals: the share of training episodes whose goal is a flip (another face up, tilt ≥ 30°);
+    None draws goals as evaluation does (about half are flips). Evaluations during training and
+    ``hydo eval`` always draw as drawn."""
     n_step: Count = 1
     """Primitives per TD target: the critic learns from the return of up to ``n_step`` primitives of
     an episode and bootstraps after them (``models.replay.ReplayBuffer.n_step_chain``)."""
@@ -143,6 +147,8 @@ class TrainConfig:
             raise ValueError(
                 "`relabel_future` needs a goal fixed over the episode; the --task goals follow the object"
             )
+        if self.flip_share is not None and (self.goals != "6d" or self.task is not None):
+            raise ValueError('`flip_share` mixes 6D goals: it needs goals = "6d" and no task')
         if self.task is not None:  # --task (eval issue): its scene replaces objects, goals and clutter
             from sim.tasks import TASK_NAMES
 

@@ -6,12 +6,23 @@ from hydo_cli.errors import HydoError
 
 
 def make_envs(
-    objects, goals, clutter, obs, n_envs, n_obj=None, n_bg=None, render=False, task=None, task_start="fixed"
+    objects,
+    goals,
+    clutter,
+    obs,
+    n_envs,
+    n_obj=None,
+    n_bg=None,
+    render=False,
+    task=None,
+    task_start="fixed",
+    flip_share=None,
 ):
     """``n_envs`` envs of one configuration (point counts default to the contract's).
 
     ``task`` (``sim.tasks``) replaces objects, goals and clutter by the task's scene; ``task_start``
-    is ``fixed`` (evaluation) or ``random`` (training).
+    is ``fixed`` (evaluation) or ``random`` (training). ``flip_share``: training's mix of 6D goals
+    (``BinEnv``).
     """
     from sim.contract import DEFAULT_N_BG, DEFAULT_N_OBJ
     from sim.env import BinEnv
@@ -37,6 +48,7 @@ def make_envs(
             render_mode="rgb_array" if render else None,
             task=task,
             task_start=task_start,
+            flip_share=flip_share,
         )
         for _ in range(n_envs)
     ]

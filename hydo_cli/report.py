@@ -10,6 +10,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from sim.goals import FLIP_TILT_DEG
+
 #: Table I's columns, in the paper's order.
 COMPARE_SPLITS = ("unseen-category", "unseen-instance", "train")
 SPLIT_TITLES = {
@@ -17,10 +19,6 @@ SPLIT_TITLES = {
     "unseen-instance": "Unseen Instance",
     "train": "Training Objects",
 }
-#: A 6D goal that tilts the object's up direction by this much or more counts as a flip (another face
-#: up): poses on one face differ by yaw only (tilt ~0; a near-symmetry may add ~10°), poses on two
-#: faces by the angle between the faces.
-FLIP_TILT_DEG = 30.0
 #: A flip that tilts the up direction this much or more turns the object over (a box upside down: two
 #: tips, or one push that rolls it); below it, a flip lays the object on a side (one tip).
 FLIP_OVER_DEG = 120.0

@@ -145,6 +145,7 @@ class Trainer:
             cfg.n_bg,
             task=cfg.task,
             task_start="random",
+            flip_share=cfg.flip_share,
         )
         # Worker 0 keeps the serial loop's seeding; the others draw their own episodes and noise.
         seed = cfg.seed if rank == 0 else cfg.seed + 1_000_003 * rank
@@ -330,9 +331,15 @@ class Trainer:
         policy = agent_policy(
             self.agent, "eval", torch.Generator().manual_seed(self.cfg.seed + EVAL_SEED_OFFSET)
         )
-        results = run_episodes(
-            self.envs, policy, self.cfg.eval_episodes, seed=self.cfg.seed + EVAL_SEED_OFFSET
-        )
+        for env in self.envs:  # evaluate on goals as drawn, whatever mix training uses
+            env.flip_share = None
+        try:
+            results = run_episodes(
+                self.envs, policy, self.cfg.eval_episodes, seed=self.cfg.seed + EVAL_SEED_OFFSET
+            )
+        finally:
+            for env in self.envs:
+                env.flip_share = self.cfg.flip_share
         return summarize(results)
 
     def run(self, fresh_replay: bool = False) -> None:

@@ -22,7 +22,8 @@ Episode end
 Arguments (``gymnasium.make("hydo/Bin-v0", ...)``)
     ``objects`` (split name, object name or mesh folder), ``goals`` (``planar`` | ``6d``), ``obs``
     (``mesh`` | ``render``), ``clutter`` (0, 1, 2 or 5 extra objects in the background cloud),
-    ``n_obj``, ``n_bg`` (point counts), ``max_steps``, ``goal_symmetry`` (``object`` | ``none``);
+    ``n_obj``, ``n_bg`` (point counts), ``max_steps``, ``goal_symmetry`` (``object`` | ``none``),
+    ``flip_share`` (6D, training: the share of episodes whose goal is a flip; None: as drawn, ~half);
     ``task`` (``sim.tasks``: ``push-line`` |
     ``push-align``, the behaviour-diversity variants; they fix the object, goal and obstacles) and
     ``task_start`` (``fixed``: the task's fixed start pose, for evaluation; ``random``: its training
@@ -59,6 +60,7 @@ from sim.goals import (
     sample_placement,
     sample_start_and_goal,
     stable_poses,
+    tilt_deg,
 )
 from sim.objects import ObjectAsset, load_objects
 from sim.observe import MeshObserver
@@ -87,6 +89,7 @@ class BinEnv(gym.Env):
         task: str | None = None,
         task_start: str = "fixed",
         goal_symmetry: str = "object",
+        flip_share: float | None = None,
     ):
         if goal_symmetry not in GOAL_SYMMETRIES:
             raise ValueError(
@@ -117,6 +120,9 @@ class BinEnv(gym.Env):
         if not self.assets:
             raise ValueError("no objects to train or evaluate on")
         self.goal_mode, self.n_clutter = goals, clutter
+        if flip_share is not None and (goals != "6d" or not 0.0 <= flip_share <= 1.0):
+            raise ValueError(f"`flip_share` is a fraction in [0, 1] for 6D goals. Got {flip_share!r}.")
+        self.flip_share = flip_share  # public: a trainer evaluates with None (goals as drawn)
         self.n_obj, self.n_bg, self.max_steps = n_obj, n_bg, max_steps
         self.render_mode = render_mode
         self.obs_source = obs
@@ -216,8 +222,11 @@ class BinEnv(gym.Env):
         self.scene.reset()  # full reset: MuJoCo's warm-start state must not leak between episodes
         # the start and goal: sim.goals, shared with the deploy twin (same draws, same order)
         poses = self._poses[asset.name]
+        # flip_share (training only): this episode's goal is a flip with that probability. None keeps
+        # the natural draw, and the rng stream with it (evaluation episodes stay the same episodes)
+        flip = None if self.flip_share is None else bool(rng.random() < self.flip_share)
         (pos, quat), (gpos, gquat) = sample_start_and_goal(
-            asset, self.goal_mode, rng, poses, symmetric=self.goal_symmetry == "object"
+            asset, self.goal_mode, rng, poses, symmetric=self.goal_symmetry == "object", flip=flip
         )
         self.T_goal = pose_matrix(gpos, gquat)
         self.scene.set_object_pose(pos, quat)
@@ -239,8 +248,7 @@ class BinEnv(gym.Env):
     def _goal_tilt_deg(self) -> float:
         """Degrees between the object's up direction now and at the goal (up to its symmetry): ~0 when
         the goal only moves and yaws it, ~90 or ~180 when the goal lies on another face (a flip)."""
-        R_rel = self.T_goal_eff[:3, :3] @ self.scene.object_T()[:3, :3].T  # current → goal, world frame
-        return float(np.degrees(np.arccos(np.clip(R_rel[2, 2], -1.0, 1.0))))
+        return tilt_deg(self.scene.object_T(), self.T_goal_eff)
 
     def _reset_task(self, rng):
         """A task's start (fixed, or random in its start region) and goal; see ``sim.tasks``."""

@@ -45,6 +45,10 @@ WALL_MARGIN_M = 0.02  # keep sampled object footprints this far from the bin wal
 PLACEMENT_HALF_M = np.array([0.12, 0.14])
 MIN_GOAL_DISTANCE_M = 0.05  # a goal must start further than the success threshold (with margin)
 GOAL_TRIES = 100  # start/goal pairs drawn before the last one is kept, however close
+#: A 6D goal that tilts the object's up direction by this much or more (up to its symmetry) counts as a
+#: flip (another face up); under it, a move. Poses on one face differ by yaw only (tilt ~0; a
+#: near-symmetry may add ~10°), poses on two faces by the angle between the faces.
+FLIP_TILT_DEG = 30.0
 
 
 def random_quaternion(rng: np.random.Generator) -> np.ndarray:
@@ -182,6 +186,7 @@ def sample_start_and_goal(
     rng: np.random.Generator,
     poses: np.ndarray | None = None,
     symmetric: bool = True,
+    flip: bool | None = None,
 ):
     """A start and a goal of ``asset`` in the bin frame: ``((pos, quat), (goal_pos, goal_quat))``.
 
@@ -190,6 +195,8 @@ def sample_start_and_goal(
     stable pose, yaw and position. A pair whose goal is within ``MIN_GOAL_DISTANCE_M`` (mean distance
     of the surface samples, up to the object's symmetry unless ``symmetric=False``:
     ``sim.contract.symmetric_goal``) is re-drawn, up to ``GOAL_TRIES`` times (then the last pair is kept).
+    ``flip`` (6D goals; None: either): re-draw also until the goal is a flip (True: tilt ≥
+    ``FLIP_TILT_DEG``) or a move (False); an object with one resting face keeps its last pair.
     """
     poses = stable_poses(asset) if poses is None else poses
     for _ in range(GOAL_TRIES):
@@ -210,9 +217,16 @@ def sample_start_and_goal(
             transform_points(T_goal, asset.surface_points) - transform_points(T_start, asset.surface_points),
             axis=1,
         ).mean()
-        if d > MIN_GOAL_DISTANCE_M:
+        if d > MIN_GOAL_DISTANCE_M and (flip is None or (tilt_deg(T_start, T_goal) >= FLIP_TILT_DEG) == flip):
             break
     return (pos, quat), (gpos, gquat)
+
+
+def tilt_deg(T_from: np.ndarray, T_to: np.ndarray) -> float:
+    """Degrees between an object's up direction at two (4, 4) poses in one frame: ~0 when they differ
+    by a move and a yaw, ~90 or ~180 when they rest on different faces."""
+    R_rel = T_to[:3, :3] @ T_from[:3, :3].T  # from → to, world frame
+    return float(np.degrees(np.arccos(np.clip(R_rel[2, 2], -1.0, 1.0))))
 
 
 def episode_seed(seed: int, i: int) -> int:

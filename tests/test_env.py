@@ -132,6 +132,26 @@ def test_reset_reports_how_far_the_goal_tilts_the_object():
     assert min(tilts) < 5 and max(tilts) > 60  # 6D goals include yaws and flips
 
 
+def test_flip_share_mixes_training_goals_and_none_keeps_the_episodes():
+    """``flip_share`` (training's goal mix): 1 draws only flips, 0 only moves; None draws as before,
+    so evaluation episodes (which never set it) stay the same episodes."""
+    from sim.goals import FLIP_TILT_DEG
+
+    for share, is_flip in ((1.0, True), (0.0, False)):
+        env = BinEnv(objects="box_00", goals="6d", n_obj=32, n_bg=16, flip_share=share)
+        tilts = [env.reset(seed=s)[1]["goal_tilt_deg"] for s in range(12)]
+        assert all((t >= FLIP_TILT_DEG) == is_flip for t in tilts), (share, tilts)
+    drawn = BinEnv(objects="box_00", goals="6d", n_obj=32, n_bg=16)
+    mixed = BinEnv(objects="box_00", goals="6d", n_obj=32, n_bg=16, flip_share=0.5)
+    mixed.flip_share = None  # what the trainer does for its evaluations
+    for s in range(3):
+        drawn.reset(seed=s)
+        mixed.reset(seed=s)
+        np.testing.assert_array_equal(drawn.T_goal, mixed.T_goal)
+    with pytest.raises(ValueError, match="flip_share"):
+        BinEnv(objects="box_00", goals="planar", flip_share=0.5)
+
+
 def test_goal_reached_when_object_placed_at_goal():
     env = BinEnv(objects="cube", goals="6d")
     env.reset(seed=1)

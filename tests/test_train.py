@@ -3,6 +3,8 @@ usable by `hydo eval` and `hydo export`."""
 
 import json
 
+import pytest
+
 from tests.test_cli import hydo
 from tests.tiny_run import TINY_AGENT_TOML
 
@@ -152,3 +154,13 @@ def test_replay_is_checkpointed_as_a_snapshot_and_segments(tmp_path):
     r = hydo("train", "--resume", str(run), "--steps", "64")
     assert r.returncode == 1 and "replay-1.s" in r.stderr and "is missing" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_flip_share_is_refused_for_planar_goals_in_one_line():
+    from hydo_cli.config import TrainConfig
+    from hydo_cli.errors import HydoError
+
+    assert TrainConfig.parse({"goals": "6d", "flip_share": 0.7}, "run.toml").flip_share == 0.7
+    with pytest.raises(HydoError, match=r"run\.toml.*flip_share.*6d") as e:
+        TrainConfig.parse({"goals": "planar", "flip_share": 0.7}, "run.toml")
+    assert "\n" not in str(e.value)
