@@ -39,6 +39,7 @@ class OnRefusal(str, Enum):
 
 
 class Registration(str, Enum):  # robot.loop.REGISTRATIONS
+    auto = "auto"
     views = "views"
     model = "model"
 
@@ -159,9 +160,10 @@ def deploy(
         typer.Option(
             "--registration",
             help="views: the current cloud to the goal cloud; model: both to the object's mesh "
-            "(the twin's object, or --object-mesh on a cell).",
+            "(the twin's object, or --object-mesh on a cell); auto: model for a 6D-goal policy in the "
+            "twin or whenever --object-mesh is given, else views.",
         ),
-    ] = "views",
+    ] = "auto",
     object_mesh: Annotated[
         Path | None,
         typer.Option(
@@ -393,9 +395,10 @@ def ladder_cmd(
         typer.Option(
             "--registration",
             help="The twin rung's registration: views, or model (the object's mesh, which the policy "
-            "then observes at the fitted pose: --observe model).",
+            "then observes at the fitted pose: --observe model); auto: model for a 6D-goal policy, "
+            "else views (as hydo deploy).",
         ),
-    ] = "views",
+    ] = "auto",
     env_draws: Annotated[
         int,
         typer.Option(

@@ -169,10 +169,10 @@ def run_env_rung(
 
 
 def run_twin_rung(
-    rung: str, model: Path, n: int, seed: int, objects: str, log_dir: Path, registration: str = "views"
+    rung: str, model: Path, n: int, seed: int, objects: str, log_dir: Path, registration: str = "auto"
 ) -> RungResult:
     """``twin-true`` / ``twin-cameras`` / ``twin``: ``hydo deploy --robot sim`` on the same episodes
-    (``robot.loop``); ``registration``: the ``twin`` rung's (``views`` | ``model``)."""
+    (``robot.loop``); ``registration``: the ``twin`` rung's (``auto`` | ``views`` | ``model``)."""
     from robot.loop import DeployConfig, Deployment
     from robot.report import write_summary
 
@@ -188,7 +188,8 @@ def run_twin_rung(
         registration=registration,
         command=f"hydo deploy ladder (rung {rung})",
     )
-    res = Deployment.prepare(cfg).run()
+    dep = Deployment.prepare(cfg)
+    res = dep.run()
     write_summary(res)  # the session folder reads like any `hydo deploy` session's
     last_step = {}
     for s in res.steps:  # the episode's last observation: its registration decided the verdict
@@ -220,6 +221,7 @@ def run_twin_rung(
     adds = [s.registration_error for s in res.steps if s.registration_error is not None]
     extra = {}
     if rung == "twin":
+        extra["registration"] = dep.cfg.registration  # what "auto" chose for this model
         extra["steps_refused_by_kind"] = dict(
             Counter(s.outcome for s in res.steps if s.outcome.endswith(("Error", "Rejected")))
         )
@@ -251,7 +253,7 @@ def run_ladder(
     rungs: tuple[str, ...] = tuple(RUNGS),
     objects: str | None = None,
     jobs: int = 2,
-    registration: str = "views",
+    registration: str = "auto",
     env_draws: int = 1,
 ) -> list[RungResult]:
     """Run ``rungs`` of the ladder for an exported ``model`` (``jobs`` rungs at a time, one process

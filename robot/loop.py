@@ -36,7 +36,7 @@ from __future__ import annotations
 import contextlib
 import platform
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -78,8 +78,10 @@ from sim.primitive import PrimitiveRejected, feasibility_mask
 ROBOTS = ("panda", "fr3", "sim")
 PERCEPTIONS = ("cameras", "cameras-true-pose", "true")
 #: "views": the current cloud to the goal cloud (``robot.registration``); "model": both clouds to the
-#: object's mesh (``robot.model_registration``: the twin's object, or ``object_mesh`` on a cell)
-REGISTRATIONS = ("views", "model")
+#: object's mesh (``robot.model_registration``: the twin's object, or ``object_mesh`` on a cell);
+#: "auto" (the default): "model" where the object's mesh is known (the twin, or ``object_mesh``) and the
+#: policy was trained on 6D goals or a mesh was given, else "views" (:func:`resolve_registration`)
+REGISTRATIONS = ("auto", "views", "model")
 #: What the policy observes of the object with ``perception="cameras"``: "cloud", the cameras'
 #: segmented points and their PCA normals; "model" (needs ``registration="model"``), the mesh's
 #: samples the cameras would see at the fitted pose, with the mesh's normals: training's observation
@@ -88,6 +90,19 @@ OBSERVATIONS = ("cloud", "model")
 #: Refusals: bad input that stops nothing physical. Robot and camera failures are never refusals.
 REFUSALS = (PerceptionError, RegistrationError, InputError, PrimitiveRejected, UnreachableError)
 RECAPTURE_WAIT_S = 0.5
+
+
+def resolve_registration(cfg: DeployConfig, goals: str) -> str:
+    """``registration="auto"``'s choice. The object's mesh is known in the twin (its episode's object)
+    or from ``object_mesh``; with it, 6D goals register both clouds to the mesh, because a goal that
+    shows another face shares too little surface with the current view for view-to-view registration
+    (docs/results.md, issue 29). Planar goals keep views unless a mesh is given."""
+    if cfg.registration != "auto":
+        return cfg.registration
+    if cfg.object_mesh is not None:
+        return "model"
+    twin = cfg.robot == "sim" and cfg.replay is None
+    return "model" if twin and goals == "6d" else "views"
 
 
 @dataclass
@@ -118,7 +133,7 @@ class DeployConfig:
     # goal in place of registration, so that the ladder tells what the cloud costs from what
     # registration does
     perception: str = "cameras"
-    registration: str = "views"  # REGISTRATIONS
+    registration: str = "auto"  # REGISTRATIONS; Deployment.prepare resolves "auto"
     object_mesh: Path | None = None  # the object's mesh (.obj / .stl) for model registration on a cell
     observe: str | None = None  # OBSERVATIONS; None: "model" with model registration, else "cloud"
     command: str = ""
@@ -212,6 +227,14 @@ class Deployment:
             raise ValueError(
                 f"`registration` must be one of {list(REGISTRATIONS)}. Got {cfg.registration!r}."
             )
+        policy = OnnxPolicy.load(cfg.model)
+        if cfg.registration == "auto":  # from here on every check and the session log see the choice
+            cfg = replace(cfg, registration=resolve_registration(cfg, policy.manifest["goals"]))
+            if policy.manifest["goals"] == "6d" and cfg.registration == "views" and printer is not None:
+                printer(
+                    "registration: views (a 6D goal that shows another face registers to the object's "
+                    "mesh: --object-mesh FILE)"
+                )
         if cfg.registration == "model" and (cfg.robot != "sim" or cfg.replay is not None):
             if cfg.object_mesh is None:
                 raise InputError(
@@ -227,7 +250,6 @@ class Deployment:
                 raise InputError("--object-mesh is for --registration model")
             object_model = ObjectModel.from_asset(load_user_mesh(cfg.object_mesh))
         cell = load_cell(cfg.cell)
-        policy = OnnxPolicy.load(cfg.model)
         goal = Goal.load(cfg.goal) if cfg.goal is not None else None
         if cfg.replay is not None and goal is None:
             replay_goal = Path(cfg.replay) / "goals" / "e000.npz"

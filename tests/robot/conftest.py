@@ -24,6 +24,19 @@ def tiny_model(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def tiny_model_6d(tmp_path_factory):
+    """``tiny_model`` trained (untrained) for 6D goals: its manifest says ``goals = "6d"``."""
+    from hydo_cli.config import TrainConfig, agent_config
+    from hydo_cli.onnx_export import export_agent
+    from models.algos import HybridAgent
+
+    cfg = TrainConfig(algo="hydo-cm", objects="cube", goals="6d", n_obj=32, n_bg=16, agent=TINY)
+    out = tmp_path_factory.mktemp("deploy-model-6d") / "tiny"
+    export_agent(HybridAgent(agent_config(cfg)), cfg, "pytest tiny 6D deploy model", out, n_checks=2)
+    return out
+
+
+@pytest.fixture(scope="session")
 def cell():
     return load_cell()
 

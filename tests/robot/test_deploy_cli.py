@@ -104,7 +104,9 @@ def test_model_registration_on_a_cell_needs_a_readable_object_mesh(tiny_model, t
     bad.write_text("v 0 0 0\nf 1 2 3\n")
     r = hydo(*base, "--registration", "model", "--object-mesh", str(bad), "--log", str(tmp_path / "b"))
     assert r.returncode == 1 and "broken.obj" in one_line_error(r)
-    r = hydo(*base, "--object-mesh", str(bad), "--log", str(tmp_path / "c"))
+    r = hydo(*base, "--object-mesh", str(bad), "--log", str(tmp_path / "c"))  # auto: a mesh given is used
+    assert r.returncode == 1 and "broken.obj" in one_line_error(r)
+    r = hydo(*base, "--registration", "views", "--object-mesh", str(bad), "--log", str(tmp_path / "d"))
     assert r.returncode == 1 and "--object-mesh is for --registration model" in one_line_error(r)
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from robot.errors import InputError
-from robot.loop import DeployConfig, Deployment
+from robot.loop import DeployConfig, Deployment, resolve_registration
 from robot.registration import Registration, register
 from robot.session_log import read_log
 from sim.contract import SUCCESS_THRESHOLD_M, pose_matrix, transform_points
@@ -190,6 +190,28 @@ def test_model_registration_in_the_twin_reads_the_true_distance(tiny_model, tmp_
     for e in observed:
         assert abs(e["registration"]["distance_m"] - e["true_distance_m"]) < 0.005
         assert e["registration_error_m"] < 0.008  # ADD-S: as close as view registration gets (2-5 mm)
+
+
+def test_auto_registration_is_the_mesh_for_6d_goals_where_the_mesh_is_known(
+    tiny_model, tiny_model_6d, tmp_path
+):
+    """``registration="auto"`` (the default): in the twin a 6D-goal policy registers to the episode's
+    mesh and a planar one view to view; the session records the choice. On a cell the mesh is known
+    only from ``object_mesh``; an explicit choice is kept."""
+    for model, want in ((tiny_model, "views"), (tiny_model_6d, "model")):
+        dep = Deployment.prepare(DeployConfig(robot="sim", model=model, log_dir=tmp_path / want))
+        assert dep.cfg.registration == want and dep.cfg.resolved_observe() == (
+            "model" if want == "model" else "cloud"
+        )
+        assert json.loads((tmp_path / want / "session.json").read_text())["config"]["registration"] == want
+    cell = dict(robot="panda", model=tiny_model_6d, goal_offset=(0.1, 0.0, 0.0))
+    assert resolve_registration(DeployConfig(**cell), "6d") == "views"
+    assert resolve_registration(DeployConfig(**cell, object_mesh=tmp_path / "m.obj"), "6d") == "model"
+    assert resolve_registration(DeployConfig(**cell, object_mesh=tmp_path / "m.obj"), "planar") == "model"
+    assert (
+        resolve_registration(DeployConfig(robot="sim", model=tiny_model_6d, registration="views"), "6d")
+        == "views"
+    )
 
 
 @pytest.mark.parametrize("observe", ["model", "cloud"])
