@@ -92,6 +92,12 @@ class Trial:
         return [*base, "--algo", self.algo, "--seed", str(self.seed), "--out", str(self.run), *train_args]
 
 
+#: run_local marks trials from its pool threads: without one lock over update and write, a thread that
+#: serialised the state before another's update could write after it, and a finished trial would read
+#: as running. Module-level, not a field: Ray pickles the spec for its trials, and a lock does not pickle.
+_MARK_LOCK = threading.Lock()
+
+
 @dataclass
 class SweepSpec:
     """What every trial is given: the train flags, the per-trial cores and where it all goes."""
@@ -102,9 +108,6 @@ class SweepSpec:
     resume_args: list[str]
     cpus: int  # per trial: workers x threads
     state: dict = field(default_factory=dict)
-    # run_local marks trials from its pool threads: without the lock, a thread that serialised the
-    # state before another's update could write after it, and a finished trial would read as running
-    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
     # --- sweep.json: each trial's state, written by the driver only -----------------------------
     def load_state(self) -> None:
@@ -115,7 +118,7 @@ class SweepSpec:
             self.state = read_sweep_file(path)
 
     def mark(self, trial: Trial, status: str, **extra) -> None:
-        with self._lock:  # update and write as one step (see _lock)
+        with _MARK_LOCK:  # update and write as one step
             entry = self.state.setdefault(trial.name, {"attempts": 0})
             entry.update(status=status, run=str(trial.run), **extra)
             if status == "running":
