@@ -44,10 +44,10 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from hydo_cli.report import FLIP_TILT_DEG  # noqa: E402
 from sim.atomic import atomic_write_text  # noqa: E402
 from sim.baselines import heuristic_action  # noqa: E402
 from sim.env import BinEnv  # noqa: E402
+from sim.goals import FLIP_TILT_DEG  # noqa: E402
 
 N_HEURISTIC = 4  # heuristic candidates per step (it samples among its contact points)
 

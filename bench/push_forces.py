@@ -40,11 +40,11 @@ import numpy as np  # noqa: E402
 
 from hydo_cli.envs import make_envs  # noqa: E402
 from hydo_cli.policies import load_policy  # noqa: E402
-from hydo_cli.report import FLIP_TILT_DEG  # noqa: E402
 from hydo_cli.rollout import run_episodes  # noqa: E402
 from robot.cell import load_cell  # noqa: E402
 from sim import scene as scene_module  # noqa: E402
 from sim.atomic import atomic_write_text  # noqa: E402
+from sim.goals import FLIP_TILT_DEG  # noqa: E402
 from sim.primitive import FORCE_STOP_N  # noqa: E402
 
 

@@ -50,7 +50,6 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from hydo_cli.report import FLIP_TILT_DEG  # noqa: E402
 from robot import registration  # noqa: E402
 from robot.cell import load_cell  # noqa: E402
 from robot.connect import open_cameras  # noqa: E402
@@ -67,7 +66,7 @@ from robot.twin_metrics import (  # noqa: E402
 )
 from sim.atomic import atomic_write_text  # noqa: E402
 from sim.contract import transform_points  # noqa: E402
-from sim.goals import episode_seed  # noqa: E402
+from sim.goals import FLIP_TILT_DEG, episode_seed  # noqa: E402
 from sim.objects import load_objects  # noqa: E402
 
 SUCCESS_M = 0.03
