@@ -55,6 +55,7 @@ from sim.contract import (
     reward_and_success,
 )
 from sim.goals import (
+    FLIP_TILT_DEG,
     footprint_radius,
     sample_object,
     sample_placement,
@@ -123,6 +124,7 @@ class BinEnv(gym.Env):
         if flip_share is not None and (goals != "6d" or not 0.0 <= flip_share <= 1.0):
             raise ValueError(f"`flip_share` is a fraction in [0, 1] for 6D goals. Got {flip_share!r}.")
         self.flip_share = flip_share  # public: a trainer evaluates with None (goals as drawn)
+        self._single_face: set[str] = set()  # objects whose flip request found no flip (a cube): ask no more
         self.n_obj, self.n_bg, self.max_steps = n_obj, n_bg, max_steps
         self.render_mode = render_mode
         self.obs_source = obs
@@ -225,6 +227,8 @@ class BinEnv(gym.Env):
         # flip_share (training only): this episode's goal is a flip with that probability. None keeps
         # the natural draw, and the rng stream with it (evaluation episodes stay the same episodes)
         flip = None if self.flip_share is None else bool(rng.random() < self.flip_share)
+        if flip and asset.name in self._single_face:
+            flip = None  # GOAL_TRIES draws found no flip once: do not spend them on every reset
         (pos, quat), (gpos, gquat) = sample_start_and_goal(
             asset, self.goal_mode, rng, poses, symmetric=self.goal_symmetry == "object", flip=flip
         )
@@ -243,6 +247,8 @@ class BinEnv(gym.Env):
             "success": False,
             "goal_tilt_deg": self._goal_tilt_deg(),
         }
+        if flip and info["goal_tilt_deg"] < FLIP_TILT_DEG:
+            self._single_face.add(asset.name)
         return self._observe(), info
 
     def _goal_tilt_deg(self) -> float:

@@ -148,6 +148,10 @@ def test_flip_share_mixes_training_goals_and_none_keeps_the_episodes():
         drawn.reset(seed=s)
         mixed.reset(seed=s)
         np.testing.assert_array_equal(drawn.T_goal, mixed.T_goal)
+    # a cube looks the same on every face: its flip request finds none once, and is not made again
+    cube = BinEnv(objects="cube", goals="6d", n_obj=32, n_bg=16, flip_share=1.0)
+    assert all(cube.reset(seed=s)[1]["goal_tilt_deg"] < FLIP_TILT_DEG for s in range(3))
+    assert cube._single_face == {"cube"}
     with pytest.raises(ValueError, match="flip_share"):
         BinEnv(objects="box_00", goals="planar", flip_share=0.5)
 
