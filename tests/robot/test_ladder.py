@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from robot.errors import InputError
+from robot.errors import InputError, RegistrationError
 from robot.loop import DeployConfig, Deployment, resolve_registration
 from robot.registration import Registration, register
 from robot.session_log import read_log
@@ -212,6 +212,19 @@ def test_auto_registration_is_the_mesh_for_6d_goals_where_the_mesh_is_known(
         resolve_registration(DeployConfig(robot="sim", model=tiny_model_6d, registration="views"), "6d")
         == "views"
     )
+
+
+def test_a_6d_policy_on_a_cell_without_a_mesh_is_told_in_one_line(tiny_model, tiny_model_6d):
+    """On a cell, ``auto`` without ``object_mesh`` falls back to views; for a 6D policy that costs the
+    goals that show another face, so ``prepare`` says so (once, before any other check) and names the
+    flag. A planar policy gets no note."""
+    for model, notes in ((tiny_model_6d, 1), (tiny_model, 0)):
+        lines: list[str] = []
+        # no goal: refused right after the registration choice, before any device would open
+        with pytest.raises(RegistrationError, match="needs a goal"):
+            Deployment.prepare(DeployConfig(robot="panda", model=model), printer=lines.append)
+        assert len(lines) == notes
+        assert all(line.startswith("registration: views") and "--object-mesh" in line for line in lines)
 
 
 @pytest.mark.parametrize("observe", ["model", "cloud"])
