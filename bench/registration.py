@@ -66,8 +66,9 @@ from robot.twin_metrics import (  # noqa: E402
 )
 from sim.atomic import atomic_write_text  # noqa: E402
 from sim.contract import transform_points  # noqa: E402
-from sim.goals import FLIP_TILT_DEG, episode_seed  # noqa: E402
+from sim.goals import FLIP_TILT_DEG, episode_seed, tilt_deg  # noqa: E402
 from sim.objects import load_objects  # noqa: E402
+from sim.symmetry import symmetries  # noqa: E402
 
 SUCCESS_M = 0.03
 NEAR_SHIFT_M = (0.01, 0.04)
@@ -75,12 +76,6 @@ NEAR_YAW_DEG = 20.0
 TURNED_SHIFT_M = 0.01
 TURNED_YAW_DEG = (60.0, 180.0)
 CASES = ("start", "near", "turned")
-
-
-def _tilt_deg(T_from: np.ndarray, T_to: np.ndarray) -> float:
-    """Degrees between the object's up direction at ``T_from`` and at ``T_to`` (up to nothing)."""
-    R_rel = T_to[:3, :3] @ T_from[:3, :3].T
-    return float(np.degrees(np.arccos(np.clip(R_rel[2, 2], -1.0, 1.0))))
 
 
 def _quat_yaw(quat_wxyz: np.ndarray, yaw: float) -> np.ndarray:
@@ -238,7 +233,8 @@ def main() -> None:
             T_goal = world.place_object(*goal)
             goal_points = segment(cams.capture(), background, cell, rng).obj_points
             world.place_object(*start)
-            kind = "flip" if _tilt_deg(world.object_T(), T_goal) >= FLIP_TILT_DEG else "move"
+            tilt = tilt_deg(world.object_T(), T_goal, symmetries(asset))  # as hydo eval splits them
+            kind = "flip" if tilt >= FLIP_TILT_DEG else "move"
             row = {"episode": ep, "object": asset.name, "kind": kind}
             model_reg = None
             if args.registration == "model":

@@ -55,7 +55,7 @@ from sim.contract import (
     reward_and_success,
 )
 from sim.goals import (
-    FLIP_TILT_DEG,
+    can_flip,
     footprint_radius,
     sample_object,
     sample_placement,
@@ -124,7 +124,7 @@ class BinEnv(gym.Env):
         if flip_share is not None and (goals != "6d" or not 0.0 <= flip_share <= 1.0):
             raise ValueError(f"`flip_share` is a fraction in [0, 1] for 6D goals. Got {flip_share!r}.")
         self.flip_share = flip_share  # public: a trainer evaluates with None (goals as drawn)
-        self._single_face: set[str] = set()  # objects whose flip request found no flip (a cube): ask no more
+        self._can_flip: dict[str, bool] = {}  # sim.goals.can_flip per object, asked on its first flip request
         self.n_obj, self.n_bg, self.max_steps = n_obj, n_bg, max_steps
         self.render_mode = render_mode
         self.obs_source = obs
@@ -227,8 +227,8 @@ class BinEnv(gym.Env):
         # flip_share (training only): this episode's goal is a flip with that probability. None keeps
         # the natural draw, and the rng stream with it (evaluation episodes stay the same episodes)
         flip = None if self.flip_share is None else bool(rng.random() < self.flip_share)
-        if flip and asset.name in self._single_face:
-            flip = None  # GOAL_TRIES draws found no flip once: do not spend them on every reset
+        if flip and not self._flippable(asset, poses):
+            flip = None  # no stable pose is a flip from another (a cube): draw as without flip_share
         (pos, quat), (gpos, gquat) = sample_start_and_goal(
             asset, self.goal_mode, rng, poses, symmetric=self.goal_symmetry == "object", flip=flip
         )
@@ -247,14 +247,18 @@ class BinEnv(gym.Env):
             "success": False,
             "goal_tilt_deg": self._goal_tilt_deg(),
         }
-        if flip and info["goal_tilt_deg"] < FLIP_TILT_DEG:
-            self._single_face.add(asset.name)
         return self._observe(), info
+
+    def _flippable(self, asset, poses: np.ndarray) -> bool:
+        """:func:`sim.goals.can_flip`, once per object."""
+        if asset.name not in self._can_flip:
+            self._can_flip[asset.name] = can_flip(asset, poses, symmetric=self.goal_symmetry == "object")
+        return self._can_flip[asset.name]
 
     def _goal_tilt_deg(self) -> float:
         """Degrees between the object's up direction now and at the goal (up to its symmetry): ~0 when
         the goal only moves and yaws it, ~90 or ~180 when the goal lies on another face (a flip)."""
-        return tilt_deg(self.scene.object_T(), self.T_goal_eff)
+        return tilt_deg(self.scene.object_T(), self.T_goal_eff, self._symmetries[self.scene.asset.name])
 
     def _reset_task(self, rng):
         """A task's start (fixed, or random in its start region) and goal; see ``sim.tasks``."""

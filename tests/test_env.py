@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import sim.env  # noqa: F401  (registers hydo/Bin-v0)
+import sim.env  # registers hydo/Bin-v0; the flip_share test spies on it
 from sim.baselines import heuristic_action
 from sim.contract import FEATURE_DIM, SUCCESS_THRESHOLD_M, validate_observation
 from sim.env import BinEnv
@@ -104,14 +104,25 @@ def test_info_poses_reproduce_the_observed_goal_flow():
     want = goal_flow(obs["points"][:64], T_obj, T_goal)
     np.testing.assert_allclose(obs["features"][:64, 1:], want, atol=1e-5)
     # the tilt still left after the step (eval's failed flips that never turned over), from the same poses
-    up_goal, up_now = T_goal[:3, :3].T @ [0, 0, 1], T_obj[:3, :3].T @ [0, 0, 1]
-    tilt = np.degrees(np.arccos(np.clip(up_goal @ up_now, -1, 1)))
-    assert info["goal_tilt_deg"] == pytest.approx(tilt, abs=1e-6)
+    assert info["goal_tilt_deg"] == pytest.approx(_least_tilt(T_obj, T_goal, env.scene.asset), abs=1e-6)
+
+
+def _least_tilt(T_now, T_goal, asset) -> float:
+    """The tilt between the up directions at ``T_now`` and the nearest of the goal's symmetric poses,
+    written out plainly: one symmetry at a time, in the world frame."""
+    from sim.symmetry import symmetries
+
+    tilts = []
+    for S in symmetries(asset):
+        up_goal = (T_goal @ S)[:3, :3].T @ [0, 0, 1]  # world up in the object frame at the goal
+        up_now = T_now[:3, :3].T @ [0, 0, 1]
+        tilts.append(np.degrees(np.arccos(np.clip(up_goal @ up_now, -1, 1))))
+    return min(tilts)
 
 
 def test_reset_reports_how_far_the_goal_tilts_the_object():
-    """``goal_tilt_deg``: 0 for planar goals; for 6D goals the angle between the up directions of
-    the start and the (nearest symmetric) goal pose, so flips read ≥ 30° and yaws 0."""
+    """``goal_tilt_deg``: 0 for planar goals; for 6D goals the least angle between the up directions
+    of the start and the goal's symmetric poses, so flips read ≥ 30° and yaws 0."""
     from sim.contract import pose_matrix
 
     planar = BinEnv(objects="train", goals="planar", n_obj=32, n_bg=16)
@@ -123,19 +134,16 @@ def test_reset_reports_how_far_the_goal_tilts_the_object():
     tilts = []
     for s in range(40):
         _, info = env.reset(seed=s)
-        R_goal = env.T_goal_eff[:3, :3]
-        R_now = pose_matrix(*env.scene.object_pose())[:3, :3]
-        up_goal, up_now = R_goal.T @ [0, 0, 1], R_now.T @ [0, 0, 1]  # world up in the object frame
-        want = np.degrees(np.arccos(np.clip(up_goal @ up_now, -1, 1)))
+        want = _least_tilt(pose_matrix(*env.scene.object_pose()), env.T_goal_eff, env.scene.asset)
         assert info["goal_tilt_deg"] == pytest.approx(want, abs=1e-6)
         tilts.append(info["goal_tilt_deg"])
     assert min(tilts) < 5 and max(tilts) > 60  # 6D goals include yaws and flips
 
 
-def test_flip_share_mixes_training_goals_and_none_keeps_the_episodes():
+def test_flip_share_mixes_training_goals_and_none_keeps_the_episodes(monkeypatch):
     """``flip_share`` (training's goal mix): 1 draws only flips, 0 only moves; None draws as before,
     so evaluation episodes (which never set it) stay the same episodes."""
-    from sim.goals import FLIP_TILT_DEG
+    from sim.goals import FLIP_TILT_DEG, sample_start_and_goal
 
     for share, is_flip in ((1.0, True), (0.0, False)):
         env = BinEnv(objects="box_00", goals="6d", n_obj=32, n_bg=16, flip_share=share)
@@ -148,12 +156,44 @@ def test_flip_share_mixes_training_goals_and_none_keeps_the_episodes():
         drawn.reset(seed=s)
         mixed.reset(seed=s)
         np.testing.assert_array_equal(drawn.T_goal, mixed.T_goal)
-    # a cube looks the same on every face: its flip request finds none once, and is not made again
-    cube = BinEnv(objects="cube", goals="6d", n_obj=32, n_bg=16, flip_share=1.0)
-    assert all(cube.reset(seed=s)[1]["goal_tilt_deg"] < FLIP_TILT_DEG for s in range(3))
-    assert cube._single_face == {"cube"}
+    # a cube looks the same on every face (sim.goals.can_flip): the sampler is not asked for a flip
+    # there is none of (GOAL_TRIES draws spent on every reset), while a box is
+    asked = []
+
+    def spy(*args, flip=None, **kwargs):
+        asked.append(flip)
+        return sample_start_and_goal(*args, flip=flip, **kwargs)
+
+    monkeypatch.setattr(sim.env, "sample_start_and_goal", spy)
+    for objects in ("cube", "box_00"):
+        env = BinEnv(objects=objects, goals="6d", n_obj=32, n_bg=16, flip_share=1.0)
+        tilts = [env.reset(seed=s)[1]["goal_tilt_deg"] for s in range(3)]
+        assert all((t >= FLIP_TILT_DEG) == (objects == "box_00") for t in tilts), (objects, tilts)
+    assert asked == [None] * 3 + [True] * 3
     with pytest.raises(ValueError, match="flip_share"):
         BinEnv(objects="box_00", goals="planar", flip_share=0.5)
+
+
+def test_can_flip_is_whether_another_face_can_be_up_whatever_the_symmetry():
+    """``sim.goals.can_flip``: a box can show another face; a cube (every face alike), a capsule (it
+    rests only on its side, any roll alike) and a torus (upside down is itself) cannot, unless goals
+    are exact poses; and where it says no, flip requests find none, and where yes, they always do."""
+    from sim.contract import pose_matrix
+    from sim.goals import FLIP_TILT_DEG, can_flip, sample_start_and_goal, tilt_deg
+    from sim.objects import load_objects
+    from sim.symmetry import symmetries
+
+    by_name = {a.name: a for a in load_objects("train") + load_objects("unseen")}
+    assert can_flip(by_name["box_00"]) and can_flip(by_name["wedge_00"])
+    for name in ("cube", "capsule_00", "torus_00"):
+        assert not can_flip(by_name[name]), name
+    assert can_flip(by_name["cube"], symmetric=False)  # exact poses: another face is another pose
+    for name in ("box_00", "torus_00", "u_prism_00"):
+        asset, rng = by_name[name], np.random.default_rng(0)
+        for _ in range(4):
+            (p, q), (gp, gq) = sample_start_and_goal(asset, "6d", rng, flip=True)
+            tilt = tilt_deg(pose_matrix(p, q), pose_matrix(gp, gq), symmetries(asset))
+            assert (tilt >= FLIP_TILT_DEG) == can_flip(asset), (name, tilt)
 
 
 def test_goal_reached_when_object_placed_at_goal():
