@@ -35,13 +35,16 @@ from hydo_cli.options import (
     TaskOpt,
 )
 from hydo_cli.paths import check_writable
+from hydo_cli.records import is_record, load_record, recorded_runs
 from hydo_cli.report import COMPARE_SPLITS, aggregate, run_summary
 from hydo_cli.tables import markdown_report, print_report
 from sim.atomic import atomic_write_text
 
 HELP = """Evaluate policies: success per run, IQM [95% CI] across runs, the paper's Table I (--compare).
 
-Each TARGET is one run: heuristic, random, a run directory, a checkpoint or an exported model folder.
+Each TARGET is one run: heuristic, random, a run directory, a checkpoint or an exported model folder;
+or a recorded evaluation, FILE.json[.gz] written by `hydo eval --json` on the same episodes, whose
+runs join this one without being rerun (Table I trained one run per session: hydo_cli.records).
 Give several (e.g. the seeds of a method) to aggregate them. Every run faces the same episodes. The
 policy acts as in training's evaluation (its `policy` column says whether it samples). Goals are
 the mode the runs were trained on (a model's manifest, a run's config) unless --goals says otherwise.
@@ -76,17 +79,20 @@ Examples:
   hydo eval runs/6d/hydo-cm-s* runs/6d/hacman-s* heuristic --compare --markdown table1.md
 
   hydo eval runs/hydo-push-line --task push-line --episodes 500
+
+  hydo eval docs/table1-6d/*.json.gz heuristic --compare --goals 6d --episodes 200 --seed 1
 """
 
 console = Console(stderr=True)
 
 
-def resolve_goals(goals: Goals | None, targets: list[str], loaded: list, task: bool) -> str:
+def resolve_goals(goals: Goals | None, trained_on: list[tuple[str, str | None]], task: bool) -> str:
     """The goal mode to evaluate on: ``--goals`` if given, else the one the learned targets were
-    trained on (a 6D model is not silently scored on planar goals); planar for baselines alone."""
+    trained on (a 6D model is not silently scored on planar goals) or a record was evaluated on;
+    planar for baselines alone. ``trained_on``: ``(target, goal mode or None)`` per target."""
     if goals is not None:
         return goals.value
-    trained = {t: lp.goals for t, lp in zip(targets, loaded, strict=True) if lp.goals is not None}
+    trained = {t: g for t, g in trained_on if g is not None}
     if task or not trained:
         return Goals.planar.value
     if len(set(trained.values())) > 1:
@@ -101,7 +107,8 @@ def evaluate(
     targets: Annotated[
         list[str],
         typer.Argument(
-            help="One or more runs: heuristic | random | a run directory | a checkpoint | an exported model folder.",
+            help="One or more runs: heuristic | random | a run directory | a checkpoint | an exported model "
+            "folder | a recorded evaluation FILE.json[.gz] (hydo eval --json on the same episodes).",
             metavar="TARGET",
             show_default=False,
         ),
@@ -217,10 +224,29 @@ def evaluate(
     # 2. load every target first: a bad one fails in a second, not after the others ran
     w = None if weights is None else weights.value
     cn = None if chain_noise is None else chain_noise.value
-    loaded = [
-        load_policy(t, seed=seed, feasible_only=feasible_only, weights=w, chain_noise=cn) for t in targets
-    ]
-    goal_mode = resolve_goals(goals, targets, loaded, task_def is not None)
+    records = {t: load_record(t) for t in targets if is_record(t)}
+    if records and (task_def is not None or video is not None):
+        raise HydoError("recorded evaluations (FILE.json) join goal evaluations only: drop --task/--video")
+    live = [t for t in targets if t not in records]
+    loaded = {
+        t: load_policy(t, seed=seed, feasible_only=feasible_only, weights=w, chain_noise=cn) for t in live
+    }
+    trained = [(t, lp.goals) for t, lp in loaded.items()] + [(t, r["goals"]) for t, r in records.items()]
+    goal_mode = resolve_goals(goals, trained, task_def is not None)
+    settings = {"goals": goal_mode, "episodes": episodes, "seed": seed, "clutter": clutter}
+    settings |= {"obs": obs.value, "feasible_only": feasible_only}
+    recorded = {t: recorded_runs(t, r, settings, splits) for t, r in records.items()}
+    seen: dict[tuple, str] = {}  # (target, split) → where it came from: a run pooled twice is refused
+    for t in live:
+        seen.update({(t, sp): t for sp in splits})
+    for path, by_split in recorded.items():
+        for sp, rs in by_split.items():
+            for r in rs:
+                if (r["target"], sp) in seen:
+                    raise HydoError(
+                        f"run {r['target']} on {sp} is in {path} and in {seen[r['target'], sp]}: give it once"
+                    )
+                seen[r["target"], sp] = path
 
     # 3. run: same episodes for every run; envs per split and point counts
     frames: list = []
@@ -245,7 +271,11 @@ def evaluate(
         transient=True,
     ) as progress:
         for split in splits:
-            for target, lp in zip(targets, loaded, strict=True):
+            for target in targets:
+                if target in recorded:  # its runs join as recorded, on the same episodes
+                    runs.extend(recorded[target][split])
+                    continue
+                lp = loaded[target]
                 key = (split, lp.n_obj, lp.n_bg)
                 if key not in envs_cache:
                     envs_cache[key] = make_envs(
@@ -292,6 +322,7 @@ def evaluate(
             env.close()
 
     # 4. aggregate, print, write
+    n_played = sum(episodes for r in runs if "recorded" not in r)  # recorded runs were not rerun
     agg = aggregate(runs, splits, seed, task_def)
     report = {
         "command": shlex.join(["hydo", *sys.argv[1:]]),
@@ -320,14 +351,18 @@ def evaluate(
         "ci_high": None if agg["all"] is None else agg["all"]["ci_high"],
         "aggregate": agg,
         "wall_s": total_wall,
-        "episodes_per_s": len(runs) * episodes / total_wall,
+        "episodes_per_s": n_played / total_wall if n_played else None,
         "runs": runs,
     }
     print_report(report)
-    console.print(
-        f"{len(runs) * episodes} episodes in {total_wall:.1f} s: {report['episodes_per_s']:.1f} episodes/s "
-        f"({obs.value} observations, one process)"
-    )
+    if n_played:
+        console.print(
+            f"{n_played} episodes in {total_wall:.1f} s: {report['episodes_per_s']:.1f} episodes/s "
+            f"({obs.value} observations, one process)"
+        )
+    if recorded:
+        n_rec = len(runs) - n_played // episodes
+        console.print(f"{n_rec} runs read from {len(recorded)} recorded evaluations, not rerun")
     if json_out is not None:
         atomic_write_text(json_out, json.dumps(report, indent=2))
         console.print(f"wrote {json_out}")

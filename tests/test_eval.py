@@ -259,3 +259,69 @@ def test_contradictory_flags_are_refused(args, message, monkeypatch, capsys):
         main()
     err = capsys.readouterr().err
     assert e.value.code == 1 and message in err and len(err.strip().splitlines()) == 1
+
+
+def test_recorded_evaluations_join_table_one_without_rerunning(tmp_path):
+    """A `hydo eval --json` report (plain or gzip) is a TARGET: its runs join the aggregate as they
+    were recorded, on the same episodes, and equal a live evaluation of the same runs."""
+    import gzip
+
+    common = ["--compare", "--episodes", "2", "--seed", "3", "--goals", "planar"]
+    rec_h, rec_r = tmp_path / "h.json", tmp_path / "r.json"
+    assert runner.invoke(app, ["eval", "heuristic", *common, "--json", str(rec_h)]).exit_code == 0
+    assert runner.invoke(app, ["eval", "random", *common, "--json", str(rec_r)]).exit_code == 0
+    gz = tmp_path / "r.json.gz"
+    gz.write_bytes(gzip.compress(rec_r.read_bytes()))
+    live, mixed = tmp_path / "live.json", tmp_path / "mixed.json"
+    assert runner.invoke(app, ["eval", "heuristic", "random", *common, "--json", str(live)]).exit_code == 0
+    r = runner.invoke(app, ["eval", str(rec_h), str(gz), *common, "--json", str(mixed)])
+    assert r.exit_code == 0, r.output
+    a, b = json.loads(live.read_text()), json.loads(mixed.read_text())
+    assert [(x["target"], x["objects"]) for x in a["runs"]] == [
+        (x["target"], x["objects"]) for x in b["runs"]
+    ]
+    for x, y in zip(a["runs"], b["runs"], strict=True):
+        assert x["episodes_detail"] == y["episodes_detail"]  # the same episodes, the same play
+    assert a["aggregate"]["methods"] == b["aggregate"]["methods"]
+    assert {x["recorded"] for x in b["runs"]} == {str(rec_h), str(gz)} and b["episodes_per_s"] is None
+    # a record joins live runs of other methods (the same run twice: test_a_bad_record_...)
+    r = runner.invoke(app, ["eval", str(rec_h), "random", *common])
+    assert r.exit_code == 0 and "1 recorded evaluations" in r.output, r.output
+
+
+REC = ["--episodes", "2", "--seed", "3", "--goals", "planar"]  # the record's episodes
+
+
+@pytest.mark.parametrize(
+    "make, cli, message",
+    [
+        (None, ["--objects", "cube", *REC], "not found"),
+        ("{not json", ["--objects", "cube", *REC], "not a readable"),
+        ('{"runs": []}', ["--objects", "cube", *REC], "it lacks goals"),
+        (
+            "compare",
+            ["--compare", "--episodes", "2", "--seed", "4"],
+            "--seed 3, this evaluation with --seed 4",
+        ),
+        ("compare", ["--compare", "--episodes", "3", "--seed", "3"], "--episodes 2, this evaluation with"),
+        (
+            "compare",
+            ["--compare", *REC[:4], "--goals", "6d"],
+            "--goals planar, this evaluation with --goals 6d",
+        ),
+        ("compare", ["heuristic", "--compare", *REC], "give it once"),
+        ("cube", ["--compare", *REC], "holds no run on unseen-category"),
+    ],
+)
+def test_a_bad_record_is_one_line_and_exit_1(make, cli, message, tmp_path):
+    """Records made on other episodes, of another split, of a run given twice, or not records at all."""
+    path = tmp_path / "rec.json"
+    if make in ("compare", "cube"):  # a real record: heuristic on every split, or on the cube alone
+        split = ["--compare"] if make == "compare" else ["--objects", "cube"]
+        assert hydo("eval", "heuristic", *split, *REC, "--json", str(path)).returncode == 0
+    elif make is not None:
+        path.write_text(make)
+    r = hydo("eval", str(path), *cli, cwd=tmp_path)
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    assert "Traceback" not in r.stderr and message in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
