@@ -12,7 +12,6 @@ behaviour-diversity tasks of ``sim.tasks`` and reports behaviour entropy.
 
 from __future__ import annotations
 
-import json
 import shlex
 import sys
 import time
@@ -35,7 +34,7 @@ from hydo_cli.options import (
     TaskOpt,
 )
 from hydo_cli.paths import check_writable
-from hydo_cli.records import is_record, load_record, recorded_runs
+from hydo_cli.records import is_record, load_record, recorded_runs, write_report
 from hydo_cli.report import COMPARE_SPLITS, aggregate, run_summary
 from hydo_cli.tables import markdown_report, print_report
 from sim.atomic import atomic_write_text
@@ -137,7 +136,10 @@ def evaluate(
         ),
     ] = False,
     task: TaskOpt = None,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Write the results as JSON here.")] = None,
+    json_out: Annotated[
+        Path | None,
+        typer.Option("--json", help="Write the results as JSON here (gzip-compressed if it ends in .gz)."),
+    ] = None,
     markdown_out: Annotated[
         Path | None, typer.Option("--markdown", help="Write the tables as Markdown here.")
     ] = None,
@@ -364,7 +366,7 @@ def evaluate(
         n_rec = len(runs) - n_played // episodes
         console.print(f"{n_rec} runs read from {len(recorded)} recorded evaluations, not rerun")
     if json_out is not None:
-        atomic_write_text(json_out, json.dumps(report, indent=2))
+        write_report(json_out, report)
         console.print(f"wrote {json_out}")
     if markdown_out is not None:
         atomic_write_text(markdown_out, markdown_report(report))

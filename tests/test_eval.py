@@ -270,8 +270,10 @@ def test_recorded_evaluations_join_table_one_without_rerunning(tmp_path):
     rec_h, rec_r = tmp_path / "h.json", tmp_path / "r.json"
     assert runner.invoke(app, ["eval", "heuristic", *common, "--json", str(rec_h)]).exit_code == 0
     assert runner.invoke(app, ["eval", "random", *common, "--json", str(rec_r)]).exit_code == 0
-    gz = tmp_path / "r.json.gz"
-    gz.write_bytes(gzip.compress(rec_r.read_bytes()))
+    gz = tmp_path / "r.json.gz"  # --json FILE.gz writes it compressed
+    assert runner.invoke(app, ["eval", "random", *common, "--json", str(gz)]).exit_code == 0
+    zipped, plain = json.loads(gzip.decompress(gz.read_bytes())), json.loads(rec_r.read_text())
+    assert [r["episodes_detail"] for r in zipped["runs"]] == [r["episodes_detail"] for r in plain["runs"]]
     live, mixed = tmp_path / "live.json", tmp_path / "mixed.json"
     assert runner.invoke(app, ["eval", "heuristic", "random", *common, "--json", str(live)]).exit_code == 0
     r = runner.invoke(app, ["eval", str(rec_h), str(gz), *common, "--json", str(mixed)])
