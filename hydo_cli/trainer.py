@@ -408,7 +408,10 @@ class Trainer:
         tb = tensorboard_writer(self.run_dir) if lead else None
         metrics_log = JsonlLog(self.run_dir / "metrics.jsonl", tb, "train") if lead else None
         eval_log = JsonlLog(self.run_dir / "eval.jsonl", tb, "eval") if lead else None
-        obs = [env.reset(seed=int(self.rng.integers(2**31)))[0] for env in self.envs]
+        resets = [env.reset(seed=int(self.rng.integers(2**31))) for env in self.envs]
+        obs = [o for o, _ in resets]
+        tilt = [np.radians(info.get("goal_tilt_deg", 0.0)) for _, info in resets]  # θ per env (tilt_shaping)
+        gamma = self.agent.config.gamma
         ep_return = np.zeros(len(self.envs))
         finished: list[tuple[float, float]] = []
         last_metrics: dict[str, float] = {}
@@ -465,13 +468,19 @@ class Trainer:
                         # like the goal: it can change with the object's pose) for hindsight goals
                         flow_goal_T = env.T_goal_eff.copy()
                         next_obs, reward, terminated, truncated, info = env.step(action)
+                        stored = reward
+                        if cfg.tilt_shaping:  # potential Φ = −w θ: r + γ Φ(s') − Φ(s)
+                            # also at a terminal s': ~0 at a success, and no bonus for leaving the bin
+                            tilt_next = np.radians(info["goal_tilt_deg"])
+                            stored = reward + cfg.tilt_shaping * (tilt[k] - gamma * tilt_next)
+                            tilt[k] = tilt_next
                         rows.append(
                             Transition(
                                 points=obs[k]["points"],
                                 features=obs[k]["features"],
                                 index=action[0],
                                 motion=action[1],
-                                reward=reward,
+                                reward=stored,
                                 next_points=next_obs["points"],
                                 next_features=next_obs["features"],
                                 terminated=terminated,
@@ -488,7 +497,8 @@ class Trainer:
                         if terminated or truncated:
                             finished.append((float(info["success"]), float(ep_return[k])))
                             ep_return[k] = 0.0
-                            next_obs, _ = env.reset(seed=int(self.rng.integers(2**31)))
+                            next_obs, start = env.reset(seed=int(self.rng.integers(2**31)))
+                            tilt[k] = np.radians(start.get("goal_tilt_deg", 0.0))
                         obs[k] = next_obs
                     self.buffer.add(Transition(*(np.asarray(col) for col in zip(*rows, strict=True))))
                     self.env_steps += cfg.n_envs  # all workers stepped their share
