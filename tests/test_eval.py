@@ -294,6 +294,16 @@ def test_recorded_evaluations_join_table_one_without_rerunning(tmp_path):
 REC = ["--episodes", "2", "--seed", "3", "--goals", "planar"]  # the record's episodes
 
 
+@pytest.fixture(scope="module")
+def records(tmp_path_factory) -> dict[str, Path]:
+    """Two real records, made once: heuristic on every split (``compare``) and on the cube alone."""
+    out = {}
+    for name, split in (("compare", ["--compare"]), ("cube", ["--objects", "cube"])):
+        out[name] = tmp_path_factory.mktemp("records") / f"{name}.json"
+        assert hydo("eval", "heuristic", *split, *REC, "--json", str(out[name])).returncode == 0
+    return out
+
+
 @pytest.mark.parametrize(
     "make, cli, message",
     [
@@ -315,13 +325,10 @@ REC = ["--episodes", "2", "--seed", "3", "--goals", "planar"]  # the record's ep
         ("cube", ["--compare", *REC], "holds no run on unseen-category"),
     ],
 )
-def test_a_bad_record_is_one_line_and_exit_1(make, cli, message, tmp_path):
+def test_a_bad_record_is_one_line_and_exit_1(make, cli, message, records, tmp_path):
     """Records made on other episodes, of another split, of a run given twice, or not records at all."""
-    path = tmp_path / "rec.json"
-    if make in ("compare", "cube"):  # a real record: heuristic on every split, or on the cube alone
-        split = ["--compare"] if make == "compare" else ["--objects", "cube"]
-        assert hydo("eval", "heuristic", *split, *REC, "--json", str(path)).returncode == 0
-    elif make is not None:
+    path = records[make] if make in records else tmp_path / "rec.json"
+    if make is not None and make not in records:
         path.write_text(make)
     r = hydo("eval", str(path), *cli, cwd=tmp_path)
     assert r.returncode == 1, (r.stdout, r.stderr)
