@@ -26,7 +26,8 @@ def run_rows(report: dict) -> tuple[list[str], list[list[str]]]:
     for r in report["runs"]:
         f = r["failures"]
         steps = r["mean_steps_to_success"]
-        row = [r["target"], METHOD_NAMES.get(r["method"], r["method"])] + ([r["objects"]] if compare else [])
+        run = r["target"] + (f" (recorded in {r['recorded']})" if "recorded" in r else "")
+        row = [run, METHOD_NAMES.get(r["method"], r["method"])] + ([r["objects"]] if compare else [])
         row += [
             f"{r['success_rate']:.1%} ({round(r['success_rate'] * r['episodes'])}/{r['episodes']})",
             "-" if steps is None else f"{steps:.2f}",

@@ -276,8 +276,12 @@ def test_recorded_evaluations_join_table_one_without_rerunning(tmp_path):
     assert [r["episodes_detail"] for r in zipped["runs"]] == [r["episodes_detail"] for r in plain["runs"]]
     live, mixed = tmp_path / "live.json", tmp_path / "mixed.json"
     assert runner.invoke(app, ["eval", "heuristic", "random", *common, "--json", str(live)]).exit_code == 0
-    r = runner.invoke(app, ["eval", str(rec_h), str(gz), *common, "--json", str(mixed)])
+    md = tmp_path / "mixed.md"
+    r = runner.invoke(
+        app, ["eval", str(rec_h), str(gz), *common, "--json", str(mixed), "--markdown", str(md)]
+    )
     assert r.exit_code == 0, r.output
+    assert f"| heuristic (recorded in {rec_h}) | heuristic | unseen-category |" in md.read_text()
     a, b = json.loads(live.read_text()), json.loads(mixed.read_text())
     assert [(x["target"], x["objects"]) for x in a["runs"]] == [
         (x["target"], x["objects"]) for x in b["runs"]
