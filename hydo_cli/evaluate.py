@@ -43,7 +43,7 @@ HELP = """Evaluate policies: success per run, IQM [95% CI] across runs, the pape
 
 Each TARGET is one run: heuristic, random, a run directory, a checkpoint or an exported model folder;
 or a recorded evaluation, FILE.json[.gz] written by `hydo eval --json` on the same episodes, whose
-runs join this one without being rerun (Table I trained one run per session: hydo_cli.records).
+runs join this one without being rerun (a table whose runs were trained on different machines).
 Give several (e.g. the seeds of a method) to aggregate them. Every run faces the same episodes. The
 policy acts as in training's evaluation (its `policy` column says whether it samples). Goals are
 the mode the runs were trained on (a model's manifest, a run's config) unless --goals says otherwise.
@@ -51,7 +51,8 @@ the mode the runs were trained on (a model's manifest, a run's config) unless --
 Per run: success rate, mean primitives to success, per-object success and failure reasons: `left bin`
 and `timeout` (how failed episodes ended) and `refused` (failed episodes with at least one refused
 primitive; they are counted under their end reason too). With 6D goals, `move` and `flip`: success
-where the goal keeps the object's face up and where it asks for another face up, and each object's
+where the goal keeps the object's face up and where it asks for another face up (up to the object's
+symmetry: a torus upside down is a move), and each object's
 flips (the JSON's `by_goal` adds start and failed final distances, and flips onto a side against
 flips turning the object over, at 120 deg, and the share of failures that end with another face
 up than the goal's: for flips, the object never turned over). Across runs: interquartile mean (IQM,
