@@ -66,6 +66,9 @@ def run_summary(results: Sequence, task=None) -> dict:
         "failures": failure_counts(results),
         "rejected_primitives": s["rejected_primitives"],
         "episodes_with_rejected": sum(r.rejected > 0 for r in results),
+        # primitives that ran and left the object where it was, and their share of all primitives
+        "idle_primitives": int(sum(r.idle for r in results)),
+        "idle_share": float(sum(r.idle for r in results) / max(1, sum(r.steps for r in results))),
         "per_object": {
             k: {"episodes": len(v), "success_rate": float(np.mean(v)), **_flip_share(results, k)}
             for k, v in sorted(per_object.items())

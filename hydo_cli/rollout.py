@@ -32,6 +32,7 @@ class EpisodeResult:
     goal_tilt_deg: float = 0.0  # how far the goal tilts the object's up direction (~0: move, ≥ 30: flip)
     force_stops: int = 0  # primitives the hand's contact-force stop ended (sim.primitive.FORCE_STOP_N)
     final_tilt_deg: float = 0.0  # the tilt left at the end: a failed flip still ≥ 30 never turned over
+    idle: int = 0  # primitives that ran and left the object where it was (sim.env.IDLE_MOVE_M)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -60,7 +61,16 @@ def run_episodes(
             slots[k] = None
             return
         obs, info = envs[k].reset(seed=episode_seed(seed, next_ep))
-        slots[k] = {"ep": next_ep, "obs": obs, "ret": 0.0, "rej": 0, "stops": 0, "steps": 0, "start": info}
+        slots[k] = {
+            "ep": next_ep,
+            "obs": obs,
+            "ret": 0.0,
+            "rej": 0,
+            "stops": 0,
+            "idle": 0,
+            "steps": 0,
+            "start": info,
+        }
         if on_frame is not None:
             on_frame(next_ep, envs[k].render())
         next_ep += 1
@@ -76,6 +86,7 @@ def run_episodes(
             s["obs"], s["ret"], s["steps"] = obs, s["ret"] + reward, s["steps"] + 1
             s["rej"] += int(info["rejected"])
             s["stops"] += int(info.get("force_stopped", False))
+            s["idle"] += int(info.get("idle", False))
             if on_frame is not None:
                 on_frame(s["ep"], envs[k].render())
             if terminated or truncated:
@@ -92,6 +103,7 @@ def run_episodes(
                     goal_tilt_deg=s["start"].get("goal_tilt_deg", 0.0),
                     force_stops=s["stops"],
                     final_tilt_deg=info.get("goal_tilt_deg", 0.0),
+                    idle=s["idle"],
                 )
                 results[s["ep"]] = r
                 if on_episode is not None:

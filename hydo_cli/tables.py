@@ -18,7 +18,7 @@ def run_rows(report: dict) -> tuple[list[str], list[list[str]]]:
     """Header and rows of the per-run table (shared by the console and Markdown)."""
     compare, task = report["compare"], report["task"]
     header = ["run", "method"] + (["objects"] if compare else [])
-    header += ["success", "steps to success", "left bin", "timeout", "refused", "refused prims"]
+    header += ["success", "steps to success", "left bin", "timeout", "refused", "refused prims", "idle prims"]
     flips = any("flip" in r.get("by_goal", {}) for r in report["runs"])
     header += (["entropy", "behaviours"] if task else []) + (["move", "flip"] if flips else [])
     header += ["policy", "ep/s"]
@@ -35,6 +35,7 @@ def run_rows(report: dict) -> tuple[list[str], list[list[str]]]:
             str(f["timeout"]),
             str(f["primitive_rejected"]),
             str(r["rejected_primitives"]),
+            "-" if "idle_share" not in r else f"{r['idle_share']:.0%}",  # records from before it have none
         ]
         if task:
             row += [

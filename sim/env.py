@@ -57,6 +57,7 @@ from sim.contract import (
 from sim.goals import (
     can_flip,
     footprint_radius,
+    quat_angle,
     sample_object,
     sample_placement,
     sample_start_and_goal,
@@ -72,6 +73,11 @@ from sim.tasks import TaskStep, get_task
 
 CLUTTER_CHOICES = (0, 1, 2, 5)
 GOAL_SYMMETRIES = ("object", "none")
+#: A primitive that ran but left the object within this of where it was is *idle* (``info["idle"]``):
+#: the fingers missed it or pulled away. 3 mm and 2° are well under one push segment (3 cm) and over
+#: what settling moves a resting object.
+IDLE_MOVE_M = 0.003
+IDLE_TURN_RAD = np.deg2rad(2.0)
 
 
 class BinEnv(gym.Env):
@@ -317,6 +323,11 @@ class BinEnv(gym.Env):
             if self.task.goal_follows_object:
                 self._set_task_goal()
         reward, success, dist = self._evaluate()
+        pose_after = np.concatenate(self.scene.object_pose())
+        idle = not rejected and (
+            np.linalg.norm(pose_after[:3] - pose_before[:3]) < IDLE_MOVE_M
+            and quat_angle(pose_before[3:], pose_after[3:]) < IDLE_TURN_RAD
+        )
         left_bin = not self.scene.object_in_bin()
         terminated = bool(success or left_bin)
         truncated = bool(not terminated and self._steps >= self.max_steps)
@@ -330,11 +341,12 @@ class BinEnv(gym.Env):
             "object": self.scene.asset.name,
             "physics_steps": steps,
             "force_stopped": force_stopped,  # the hand passed the contact-force stop and let go there
+            "idle": bool(idle),  # it ran and left the object where it was (IDLE_MOVE_M, IDLE_TURN_RAD)
             "goal_tilt_deg": self._goal_tilt_deg(),  # the tilt still left to the goal (reset's: at the start)
             "waypoints": waypoints,
             # poses after the primitive, position (3,) m + quaternion wxyz (4,): hindsight relabelling
             # (models.replay) turns what the object reached into a goal
-            "object_pose": np.concatenate(self.scene.object_pose()),
+            "object_pose": pose_after,
             "goal_pose": np.concatenate(self.goal_pose),
         }
         if self.task is not None and (terminated or truncated):

@@ -269,3 +269,20 @@ def test_clutter_enters_background():
     # some background points are above the floor and away from the walls: the clutter objects
     inner = (np.abs(bg[:, 0]) < 0.2) & (np.abs(bg[:, 1]) < 0.25) & (bg[:, 2] > 0.01)
     assert inner.sum() > 0
+
+
+def test_a_push_that_leaves_the_object_where_it_was_is_idle():
+    """``info["idle"]``: the primitive ran and the object stayed (under 3 mm and 2°). A tap on the
+    cube's top lifted straight off is idle; the heuristic's push into its side is not."""
+    env = BinEnv(objects="cube", goals="planar", n_obj=64, n_bg=32)
+    obs, _ = env.reset(seed=2)
+    top = int(np.argmax(obs["points"][:64, 2]))
+    states = env.get_sim_state()
+    before = np.concatenate(env.scene.object_pose())
+    *_, info = env.step((top, np.array([0.0, 0.0, 1.0])))
+    assert info["idle"] and not info["rejected"], info["reject_reason"]
+    assert np.linalg.norm(info["object_pose"][:3] - before[:3]) < 0.003  # object_pose: after the push
+    env.set_sim_state(states)
+    *_, info = env.step(feasible_heuristic(obs))
+    assert not info["idle"] and not info["rejected"]
+    assert np.linalg.norm(info["object_pose"][:3] - before[:3]) > 0.01

@@ -106,6 +106,8 @@ def test_multi_target_eval_writes_json_and_markdown(tmp_path):
         assert run["success_rate"] == pytest.approx(sum(e["success"] for e in detail) / 3)
         assert all(e["success"] == (e["final_distance"] < SUCCESS_THRESHOLD_M) for e in detail)
         assert run["failures"]["timeout"] == sum(e["failure"] == "timeout" for e in detail)
+        assert run["idle_primitives"] == sum(e["idle"] for e in detail)  # pushes that left it in place
+        assert run["idle_share"] == pytest.approx(run["idle_primitives"] / sum(e["steps"] for e in detail))
         assert set(run["failures"]) == {"object_left_bin", "timeout", "primitive_rejected"}
         assert set(run["per_object"]) == {"cube"} and run["episodes_per_s"] > 0
     assert data["runs"][0]["stochastic"] is False and data["runs"][1]["stochastic"] is True
