@@ -50,7 +50,8 @@ the mode the runs were trained on (a model's manifest, a run's config) unless --
 
 Per run: success rate, mean primitives to success, per-object success and failure reasons: `left bin`
 and `timeout` (how failed episodes ended) and `refused` (failed episodes with at least one refused
-primitive; they are counted under their end reason too). With 6D goals, `move` and `flip`: success
+primitive; they are counted under their end reason too), and `idle prims`, the share of primitives
+that ran and left the object where it was (the fingers missed it). With 6D goals, `move` and `flip`: success
 where the goal keeps the object's face up and where it asks for another face up (up to the object's
 symmetry: a torus upside down is a move), and each object's
 flips (the JSON's `by_goal` adds start and failed final distances, and flips onto a side against
