@@ -408,9 +408,13 @@ class Trainer:
         tb = tensorboard_writer(self.run_dir) if lead else None
         metrics_log = JsonlLog(self.run_dir / "metrics.jsonl", tb, "train") if lead else None
         eval_log = JsonlLog(self.run_dir / "eval.jsonl", tb, "eval") if lead else None
-        resets = [env.reset(seed=int(self.rng.integers(2**31))) for env in self.envs]
-        obs = [o for o, _ in resets]
-        tilt = [np.radians(info.get("goal_tilt_deg", 0.0)) for _, info in resets]  # θ per env (tilt_shaping)
+
+        def start_episodes() -> tuple[list[dict], list[float]]:
+            """A new episode in every env: observations, and goal tilts θ (rad) for tilt_shaping."""
+            resets = [env.reset(seed=int(self.rng.integers(2**31))) for env in self.envs]
+            return [o for o, _ in resets], [np.radians(i.get("goal_tilt_deg", 0.0)) for _, i in resets]
+
+        obs, tilt = start_episodes()
         gamma = self.agent.config.gamma
         ep_return = np.zeros(len(self.envs))
         finished: list[tuple[float, float]] = []
@@ -533,6 +537,10 @@ class Trainer:
                     if self.env_steps >= next_eval:
                         if lead:
                             self._eval_and_log(eval_log, t_start, progress)
+                            # it played its own episodes on these envs: the interrupted ones end here
+                            obs, tilt = start_episodes()
+                            self.buffer.end_episodes()
+                            ep_return[:] = 0.0
                         next_eval += cfg.eval_every
                     if self.env_steps >= next_ckpt:
                         self.wall_s = time.perf_counter() - t_start

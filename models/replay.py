@@ -312,6 +312,12 @@ class ReplayBuffer:
             self.next_slot[np.isin(self.next_slot, dropped)] = -1
         self.pos, self.full = int(pos), bool(full)
         self.unsaved = max(0, self.unsaved - ahead)
+        self.end_episodes()
+
+    def end_episodes(self) -> None:
+        """End every episode in flight: each stream's next transition starts a new one, so no
+        hindsight goal or n-step return links across (a resume, or an evaluation that played its own
+        episodes on the training envs)."""
         self._last_slot.clear()
 
     def sample(

@@ -200,6 +200,7 @@ def sample_start_and_goal(
     pair after ``GOAL_TRIES`` draws (ask it with ``flip=None`` instead).
     """
     poses = stable_poses(asset) if poses is None else poses
+    sym = symmetries(asset) if symmetric else None  # (S, 4, 4), looked up once, not per draw
     for _ in range(GOAL_TRIES):
         start = poses[rng.integers(len(poses))]
         yaw = rng.uniform(-np.pi, np.pi)
@@ -213,13 +214,13 @@ def sample_start_and_goal(
         T_start = pose_matrix(pos, quat)
         T_goal = pose_matrix(gpos, gquat)
         if symmetric:
-            T_goal = symmetric_goal(T_start, T_goal, asset.surface_points, symmetries(asset))
+            T_goal = symmetric_goal(T_start, T_goal, asset.surface_points, sym)
         d = np.linalg.norm(
             transform_points(T_goal, asset.surface_points) - transform_points(T_start, asset.surface_points),
             axis=1,
         ).mean()
         if flip is not None:  # up to the symmetry the goal is reached up to, as can_flip
-            flipped = tilt_deg(T_start, T_goal, symmetries(asset) if symmetric else None) >= FLIP_TILT_DEG
+            flipped = tilt_deg(T_start, T_goal, sym) >= FLIP_TILT_DEG
         if d > MIN_GOAL_DISTANCE_M and (flip is None or flipped == flip):
             break
     return (pos, quat), (gpos, gquat)
@@ -237,7 +238,8 @@ def can_flip(asset: ObjectAsset, poses: np.ndarray | None = None, symmetric: boo
     poses = stable_poses(asset) if poses is None else poses
     up = np.stack([pose_matrix(np.zeros(3), q)[2, :3] for q in poses[:, 1:5]])  # (P, 3) world z, object frame
     sym_R = symmetries(asset)[:, :3, :3] if symmetric else np.eye(3)[None]  # (S, 3, 3) object frame
-    # goal pose R_j S: its up in the object frame is S^T u_j, so cos(tilt) = (S u_i) . u_j
+    # tilt_deg for every pair at once (100 poses: 10^4 pairs): the goal pose R_j S has up S^T u_j in
+    # the object frame, so cos(tilt) = (S u_i) . u_j, and the least tilt is the largest cosine
     cos = np.einsum("sab,ib,ja->sij", sym_R, up, up).max(axis=0)  # (P, P): the least tilt over S
     return bool((cos < np.cos(np.deg2rad(FLIP_TILT_DEG))).any())
 

@@ -215,3 +215,29 @@ def test_tilt_shaping_stores_the_potential_difference(tmp_path):
         if not done[i - n_envs]:
             assert before[i] == pytest.approx(after[i - n_envs], abs=2e-3), i
     assert before.max() > 0.5  # some goals are flips: the shaping was not zero throughout
+
+
+def test_an_evaluation_during_training_does_not_splice_episodes(tmp_path):
+    """Evaluations run on the training envs. Every pair of stored transitions the replay links as one
+    episode (``next_slot``: hindsight goals, n-step returns) must continue it: the same cloud and
+    the same goal. An episode that an evaluation interrupted is ended, not continued in a state the
+    evaluation left behind."""
+    import numpy as np
+
+    cfg = TINY.replace("eval_every = 24", "eval_every = 8").replace("eval_episodes = 2", "eval_episodes = 4")
+    cfg = cfg.replace("learning_starts = 16", "learning_starts = 48").replace(
+        "threads = 1\n", "threads = 1\nworkers = 1\n"
+    )
+    path = tmp_path / "tiny.toml"
+    path.write_text(cfg)
+    run = tmp_path / "run"
+    r = hydo("train", "--config", str(path), "--seed", "2", "--out", str(run))
+    assert r.returncode == 0, r.stderr[-2000:]
+    with np.load(run / "replay.npz") as z:
+        nxt, goal, next_goal = z["next_slot"], z["goal_T"], z["next_goal_T"]
+        points, next_points = z["points"], z["next_points"]
+    linked = np.flatnonzero(nxt >= 0)
+    assert len(linked) > 10
+    for prev in linked:
+        np.testing.assert_array_equal(next_points[prev], points[nxt[prev]])
+        np.testing.assert_allclose(next_goal[prev], goal[nxt[prev]], atol=1e-6, err_msg=f"slot {prev}")
