@@ -94,6 +94,12 @@ class AgentConfig:
     from one point: with it and ``critic_motion_dirs=16``, 60-min planar runs reached 78.4 / 81.6 %
     against 62.4 / 67.6 % without (docs/results.md). False in checkpoints made before it was the
     default."""
+    encoder_local_width: float = 0.0
+    """> 0: each object point's input also gets the shape of its neighbourhood among the object
+    points (``models.encoder.local_shape``: where its neighbours' centroid lies, their mean normal), a
+    Gaussian this many nearest-neighbour spacings wide: the local geometry a one-level PointNet does
+    not see (a bowl's thin rim, a wedge's edge). Computed inside the encoder graph, so the ONNX
+    interface is unchanged. 0: off (and in checkpoints made before it)."""
 
     # heads
     actor_hidden: int = 64
@@ -225,6 +231,10 @@ class AgentConfig:
         )
         check(
             self.critic_motion_dirs >= 0, f"`critic_motion_dirs` must be ≥ 0. Got {self.critic_motion_dirs}."
+        )
+        check(
+            self.encoder_local_width >= 0 and math.isfinite(self.encoder_local_width),
+            f"`encoder_local_width` must be ≥ 0 (0: off). Got {self.encoder_local_width}.",
         )
         # Rates, scales and noise levels: a zero or negative one trains nothing or divides by zero.
         for name in (
@@ -410,6 +420,7 @@ class HybridAgent:
                 global_dim=config.encoder_global,
                 length_scale=config.length_scale,
                 normals=config.encoder_normals,
+                local_width=config.encoder_local_width,
             )
             self.critic = TwinQ(
                 config.feature_dim,

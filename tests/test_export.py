@@ -75,6 +75,23 @@ def test_encoder_with_normals_exports_with_parity(tmp_path):
         policy.decide(pts, feats, noise)
 
 
+def test_encoder_with_local_shape_exports_with_parity(tmp_path):
+    """``encoder_local_width``: the neighbourhood's shape is computed inside the encoder graph,
+    with the same inputs and tolerance as without it."""
+    agent_kw = {**TINY, "encoder_normals": True, "encoder_local_width": 1.5}
+    cfg = TrainConfig(algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent=agent_kw)
+    agent = HybridAgent(agent_config(cfg))
+    report = export_agent(agent, cfg, "pytest", tmp_path / "model", n_checks=32)
+    assert report["max_abs_error_motion"] <= 1e-4 and report["max_abs_error_q"] <= 1e-4
+    assert report["index_agreement"] == 1.0
+    manifest = json.loads((tmp_path / "model" / "manifest.json").read_text())
+    assert manifest["encoder_inputs"] == ["points", "features", "normals"]
+    import onnx
+
+    ops = {n.op_type for n in onnx.load(str(tmp_path / "model" / "encoder.onnx")).graph.node}
+    assert "Exp" in ops  # the neighbourhood's weights are in the graph, not left to the caller
+
+
 def _observation():
     rng = np.random.default_rng(3)
     pts = rng.uniform(-0.1, 0.1, (1, 48, 3)).astype(np.float32)
