@@ -40,28 +40,25 @@ def test_parity_and_manifest(exported):
     assert json.loads(props["algo"]) == cfg.algo
 
 
-def test_critic_motion_directions_export_with_parity(tmp_path):
-    """The bilinear motion directions of the Q heads export with the same interface and tolerance."""
-    cfg = TrainConfig(
-        algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent={**TINY, "critic_motion_dirs": 4}
-    )
-    agent = HybridAgent(agent_config(cfg))
-    report = export_agent(agent, cfg, "pytest", tmp_path / "model", n_checks=32)
+def _export_with_parity(path, **agent_kw) -> dict:
+    """Export a fresh tiny hydo-cm agent with ``agent_kw`` to ``path``: parity within the tolerance and
+    the same argmax as torch. Returns the manifest."""
+    cfg = TrainConfig(algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent={**TINY, **agent_kw})
+    report = export_agent(HybridAgent(agent_config(cfg)), cfg, "pytest", path, n_checks=32)
     assert report["max_abs_error_motion"] <= 1e-4 and report["max_abs_error_q"] <= 1e-4
     assert report["index_agreement"] == 1.0
+    return json.loads((path / "manifest.json").read_text())
+
+
+def test_critic_motion_directions_export_with_parity(tmp_path):
+    """The bilinear motion directions of the Q heads export with the same interface and tolerance."""
+    _export_with_parity(tmp_path / "model", critic_motion_dirs=4)
 
 
 def test_encoder_with_normals_exports_with_parity(tmp_path):
     """An agent trained with ``encoder_normals``: its encoder graph takes a third input, parity holds,
     the manifest lists the inputs, and the runner refuses to decide without normals."""
-    cfg = TrainConfig(
-        algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent={**TINY, "encoder_normals": True}
-    )
-    agent = HybridAgent(agent_config(cfg))
-    report = export_agent(agent, cfg, "pytest", tmp_path / "model", n_checks=32)
-    assert report["max_abs_error_motion"] <= 1e-4 and report["max_abs_error_q"] <= 1e-4
-    assert report["index_agreement"] == 1.0
-    manifest = json.loads((tmp_path / "model" / "manifest.json").read_text())
+    manifest = _export_with_parity(tmp_path / "model", encoder_normals=True)
     assert manifest["encoder_inputs"] == ["points", "features", "normals"]
     policy = OnnxPolicy.load(tmp_path / "model")
     assert policy.needs_normals
@@ -78,13 +75,7 @@ def test_encoder_with_normals_exports_with_parity(tmp_path):
 def test_encoder_with_local_shape_exports_with_parity(tmp_path):
     """``encoder_local_width``: the neighbourhood's shape is computed inside the encoder graph,
     with the same inputs and tolerance as without it."""
-    agent_kw = {**TINY, "encoder_normals": True, "encoder_local_width": 1.5}
-    cfg = TrainConfig(algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent=agent_kw)
-    agent = HybridAgent(agent_config(cfg))
-    report = export_agent(agent, cfg, "pytest", tmp_path / "model", n_checks=32)
-    assert report["max_abs_error_motion"] <= 1e-4 and report["max_abs_error_q"] <= 1e-4
-    assert report["index_agreement"] == 1.0
-    manifest = json.loads((tmp_path / "model" / "manifest.json").read_text())
+    manifest = _export_with_parity(tmp_path / "model", encoder_normals=True, encoder_local_width=1.5)
     assert manifest["encoder_inputs"] == ["points", "features", "normals"]
     import onnx
 
