@@ -95,10 +95,10 @@ class AgentConfig:
     against 62.4 / 67.6 % without (docs/results.md). False in checkpoints made before it was the
     default."""
     encoder_local_width: float = 0.0
-    """> 0: each object point's input also gets the shape of its neighbourhood among the object
-    points (``models.encoder.local_shape``: where its neighbours' centroid lies, their mean normal), a
-    Gaussian this many nearest-neighbour spacings wide: the local geometry a one-level PointNet does
-    not see (a bowl's thin rim, a wedge's edge). Computed inside the encoder graph, so the ONNX
+    """> 0 (needs ``encoder_normals``): each object point's input also gets the mean normal of its
+    neighbourhood among the object points (``models.encoder.neighbourhood_normal``), a Gaussian this
+    many nearest-neighbour spacings wide: the local shape a one-level PointNet does not see (an
+    edge bends it, a bowl's thin rim shrinks it). Computed inside the encoder graph, so the ONNX
     interface is unchanged. 0: off (and in checkpoints made before it)."""
 
     # heads
@@ -235,6 +235,10 @@ class AgentConfig:
         check(
             self.encoder_local_width >= 0 and math.isfinite(self.encoder_local_width),
             f"`encoder_local_width` must be ≥ 0 (0: off). Got {self.encoder_local_width}.",
+        )
+        check(
+            not self.encoder_local_width or self.encoder_normals,
+            "`encoder_local_width` averages the object points' normals: it needs `encoder_normals = true`.",
         )
         # Rates, scales and noise levels: a zero or negative one trains nothing or divides by zero.
         for name in (

@@ -1,4 +1,4 @@
-"""Per-point point-cloud encoder: a small PointNet, optionally told each point's neighbourhood shape.
+"""Per-point point-cloud encoder: a small PointNet, optionally told each point's neighbourhood normal.
 
 Why not HACMan's PointNet++: on the 2-core CPU this project trains on, a HACMan-size PointNet++
 costs 0.3–3 s per gradient update (``../shared/reference/measurements.md``); the kNN-gathered tensors
@@ -8,7 +8,7 @@ room for the K-step motion chain, which has to run on every object point in ever
 
 Architecture (H = ``hidden``, G = ``global_dim``, D = ``out_dim``)::
 
-    x_i   = [ (p_i − mean(p_obj)) / s,  is_object_i,  goal_flow_i / s (, n_i) (, shape_i) ]
+    x_i   = [ (p_i − mean(p_obj)) / s,  is_object_i,  goal_flow_i / s (, n_i) (, around_i) ]
                                                      s = length_scale; n_i: normal (0 on background)
     h_i   = MLP_local(x_i)                                                  (H,)    all N points
     g     = [ max_{i ∈ obj} W_g h_i , max_{i ∈ bg} W_g h_i ]                (2G,)   per cloud
@@ -20,12 +20,11 @@ surface there, and a PointNet cannot estimate a normal from one point. With them
 runs reached 78–82 % instead of 62–68 % (docs/results.md), so ``AgentConfig.encoder_normals`` is on
 by default.
 
-With ``local_width > 0`` each object point's input also gets ``shape_i`` (:func:`local_shape`), the
-shape of its neighbourhood among the object points: where its neighbours' centroid lies (an edge, a
-rim or a corner pulls it to one side; a flat face or a smooth bulge leaves it near the point) and,
-with normals, their mean normal (a face keeps it at n_i, an edge bends it, a thin rim shrinks it). The same second-order surface facts a PointNet++ layer learns from a neighbourhood,
-given as fixed inputs: no gathered tensor goes through a matmul, so an update costs about the same
-(a learned kNN EdgeConv cost 2.3× per step, docs/experiments.md).
+With ``local_width > 0`` each object point's input also gets ``around_i``
+(:func:`neighbourhood_normal`), the mean normal of its neighbours among the object points: a face
+keeps it at n_i, an edge bends it, a thin wall or rim shrinks it. One of the second-order surface
+facts a PointNet++ layer learns from a neighbourhood, given as a fixed input: it costs ~16 % of an
+update (a learned kNN EdgeConv cost 2.3× per step, docs/experiments.md).
 
 Only object points get output features: every head (location, motion, critic) is evaluated on
 object points only, so background points contribute through the global feature alone and the head
@@ -51,21 +50,23 @@ def _max_pool(x: torch.Tensor) -> torch.Tensor:
     return x.max(dim=1).values if x.requires_grad else x.amax(dim=1)
 
 
-def local_shape(points: torch.Tensor, normals: torch.Tensor | None, width: float) -> torch.Tensor:
-    """The shape of each object point's neighbourhood: ``points (B, N_obj, 3)`` metres (,
-    ``normals (B, N_obj, 3)`` unit) → ``(B, N_obj, 3)`` (``(B, N_obj, 6)`` with normals).
+def neighbourhood_normal(points: torch.Tensor, normals: torch.Tensor, width: float) -> torch.Tensor:
+    """The mean normal of each object point's neighbourhood: ``points (B, N_obj, 3)`` metres,
+    ``normals (B, N_obj, 3)`` unit → ``(B, N_obj, 3)``.
 
     The neighbourhood is a Gaussian weighting of the other object points, of standard deviation
     σ = ``width`` × the cloud's mean nearest-neighbour spacing (so the same few neighbours on a 5 or a
-    20 cm object: on a surface ~2π·width² of them, 6 at width 1). Columns 0–2: the weighted mean
-    offset from the point to its neighbours, in units of σ (0 in the middle of a flat patch, towards
-    the inside at an edge or a rim, ~0.8 at a grid's corner). Columns 3–5: the neighbours' weighted
-    mean normal. No parameters: an input, made of matmuls and elementwise ops that export to ONNX as
-    they are. A hard k-nearest search was several times slower on this CPU (``topk`` over every row)."""
+    20 cm object: on a surface ~2π·width² of them, 6 at width 1). In the middle of a face the mean is
+    the point's own normal; an edge or a corner bends it towards the other face; a thin wall or rim,
+    whose neighbours face both ways, shrinks it. Second-order surface shape that one point's normal
+    cannot show. (The neighbours' mean offset was weighed too and left out: on the 128-point clouds
+    it is mostly sampling noise, no larger at a box's edges than on its faces.) No parameters: an
+    input, made of matmuls and elementwise ops that export to ONNX as they are; a hard k-nearest
+    search (``topk`` over every row) was several times slower on this CPU."""
     if torch.is_autocast_enabled("cpu"):
         # bf16 |p|² + |q|² − 2 p·q errs by ~1e-4 m² at object coordinates: a neighbour's own distance
         with torch.autocast("cpu", enabled=False):
-            return local_shape(points.float(), None if normals is None else normals.float(), width)
+            return neighbourhood_normal(points.float(), normals.float(), width)
     n = points.shape[1]
     p = points - points.mean(dim=1, keepdim=True)  # (B, N, 3) centred: smaller |p|², a smaller error
     sq = (p * p).sum(-1)  # (B, N)
@@ -78,12 +79,7 @@ def local_shape(points: torch.Tensor, normals: torch.Tensor | None, width: float
     # the exponent floored at -30: weights under 1e-13 count for nothing, and denormal floats (exp
     # of ~-90 and below) would make every later product several times slower on this CPU
     w = torch.exp((d2 * (-0.5 / sigma2)).clamp_min(-30.0))  # (B, N, N)
-    w_sum = w.sum(-1, keepdim=True)  # (B, N, 1) ≥ 1e-13·(N − 1)
-    # the mean offset in units of the Gaussian's width: O(1), the same on any object's size
-    parts = [((w @ p) / w_sum - p) / sigma2.sqrt()]
-    if normals is not None:
-        parts.append((w @ normals) / w_sum)
-    return torch.cat(parts, dim=-1)
+    return (w @ normals) / w.sum(-1, keepdim=True)  # (B, N, 3); the sum is ≥ 1e-13·(N − 1)
 
 
 class EncoderContext(NamedTuple):
@@ -105,8 +101,9 @@ class PointEncoder(nn.Module):
         length_scale: metres mapped to one network unit for positions and goal flow (objects are
             ~5–20 cm, the bin ~0.5 m, so 0.1 m keeps inputs at unit scale).
         normals: take the object points' normals ``(B, N_obj, 3)`` as a third input.
-        local_width: > 0, give each object point the shape of its neighbourhood among the object
-            points, this many nearest-neighbour spacings wide (:func:`local_shape`); 0: off.
+        local_width: > 0 (needs ``normals``), give each object point the mean normal of its
+            neighbourhood, this many nearest-neighbour spacings wide (:func:`neighbourhood_normal`);
+            0: off.
     """
 
     def __init__(
@@ -123,13 +120,15 @@ class PointEncoder(nn.Module):
         super().__init__()
         if n_obj < 1 or n_bg < 0:
             raise ValueError(f"`n_obj` must be ≥ 1 and `n_bg` ≥ 0. Got {n_obj}, {n_bg}.")
-        if local_width < 0 or (local_width > 0 and n_obj < 2):
-            raise ValueError(f"`local_width` must be ≥ 0, and needs n_obj ≥ 2. Got {local_width}, {n_obj}.")
+        if local_width < 0 or (local_width > 0 and (n_obj < 2 or not normals)):
+            raise ValueError(
+                f"`local_width` must be ≥ 0; > 0 needs normals and n_obj ≥ 2. Got {local_width}, {normals}, {n_obj}."
+            )
         self.n_obj, self.n_bg, self.out_dim = n_obj, n_bg, out_dim
         self.uses_normals = normals
         self.local_width = float(local_width)
         self.register_buffer("inv_scale", torch.tensor(1.0 / length_scale))
-        n_in = 7 + (3 if normals else 0) + ((6 if normals else 3) if local_width else 0)
+        n_in = 7 + (3 if normals else 0) + (3 if local_width else 0)
         self.local = nn.Sequential(nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
         self.global_proj = nn.Linear(hidden, global_dim)
         n_pools = 2 if n_bg > 0 else 1
@@ -141,7 +140,7 @@ class PointEncoder(nn.Module):
         self, points: torch.Tensor, features: torch.Tensor, normals: torch.Tensor | None = None
     ) -> torch.Tensor:
         """``points (B, N, 3)`` metres, ``features (B, N, 4)`` (, ``normals (B, N_obj, 3)``) → network
-        input ``(B, N, C)``: C = 7, + 3 with normals, + 3 (6 with normals) with ``local_width``.
+        input ``(B, N, C)``: C = 7, + 3 with normals, + 3 more with ``local_width``.
 
         Positions are taken relative to the object's centroid (translation invariance: the same push
         on the same object means the same thing anywhere in the bin) and, like the goal flow, divided
@@ -154,11 +153,8 @@ class PointEncoder(nn.Module):
         if self.uses_normals:  # background points have no normal: zeros (their is_object flag is 0)
             parts.append(torch.cat([normals, torch.zeros_like(points[:, self.n_obj :])], dim=1))
         if self.local_width:  # background rows: zeros, as for the normals
-            obj_normals = normals if self.uses_normals else None
-            shape = local_shape(points[:, : self.n_obj], obj_normals, self.local_width)
-            parts.append(
-                torch.cat([shape, shape.new_zeros(shape.shape[0], self.n_bg, shape.shape[2])], dim=1)
-            )
+            around = neighbourhood_normal(points[:, : self.n_obj], normals, self.local_width)
+            parts.append(torch.cat([around, torch.zeros_like(points[:, self.n_obj :])], dim=1))
         return torch.cat(parts, dim=-1)  # (B, N, C)
 
     def encode_context(

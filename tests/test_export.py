@@ -72,8 +72,8 @@ def test_encoder_with_normals_exports_with_parity(tmp_path):
         policy.decide(pts, feats, noise)
 
 
-def test_encoder_with_local_shape_exports_with_parity(tmp_path):
-    """``encoder_local_width``: the neighbourhood's shape is computed inside the encoder graph,
+def test_encoder_with_neighbourhood_normals_exports_with_parity(tmp_path):
+    """``encoder_local_width``: the neighbourhood normal is computed inside the encoder graph,
     with the same inputs and tolerance as without it."""
     manifest = _export_with_parity(tmp_path / "model", encoder_normals=True, encoder_local_width=1.5)
     assert manifest["encoder_inputs"] == ["points", "features", "normals"]

@@ -4,7 +4,7 @@ import pytest
 import torch
 from learner_util import random_obs
 
-from models.encoder import PointEncoder, local_shape
+from models.encoder import PointEncoder, neighbourhood_normal
 
 
 def test_shapes_and_object_only_output():
@@ -90,43 +90,38 @@ def _square_patch(n_side: int = 5, spacing: float = 0.01) -> torch.Tensor:
     return torch.cat([xy, torch.full((len(xy), 1), 0.05)], -1)[None]
 
 
-def test_local_shape_tells_an_edge_from_the_middle_of_a_face():
-    """On a flat grid the middle point's neighbourhood is balanced (offset 0) and a corner's points
-    inward, unitless (the same on a grid twice the size, and anywhere in the bin); a face's normals
-    are kept, and a second face from the next row on bends the mean of the row at the edge."""
+def test_neighbourhood_normal_bends_at_an_edge_and_shrinks_on_a_thin_wall():
+    """On one face the mean normal is the face's; where a second face starts it bends towards it (the
+    row at the edge, not three rows away); on a thin wall whose two sides face away from each other
+    it shrinks; the same on a grid twice the size anywhere in the bin, and under bf16 autocast."""
     pts = _square_patch(7)
     up = torch.tensor([0.0, 0.0, 1.0]).expand(1, 49, 3)
-    shape = local_shape(pts, up, width=1.5)
-    assert shape.shape == (1, 49, 6)
-    middle, corner, edge = 24, 0, 3  # (3, 3), (0, 0) and (0, 3) of the 7 × 7 grid
-    assert torch.allclose(shape[0, middle, :3], torch.zeros(3), atol=1e-5)
-    assert shape[0, corner, 0] > 0.3 and shape[0, corner, 1] > 0.3  # towards the inside, +x and +y
-    assert shape[0, edge, 0] > 0.3 and abs(shape[0, edge, 1]) < 1e-5
-    assert shape[0, :, :3].norm(dim=-1).max() <= 2.0
-    assert torch.allclose(local_shape(2.0 * pts + 0.1, up, width=1.5), shape, atol=1e-4)
-    assert torch.allclose(shape[0, :, 3:], up[0], atol=1e-6)
+    assert torch.allclose(neighbourhood_normal(pts, up, width=1.5), up, atol=1e-6)
     side = up.clone()
     side[:, 7:] = torch.tensor([1.0, 0.0, 0.0])  # a second face from row 1 on: row 0 sits at an edge
-    bent = local_shape(pts, side, width=1.5)
-    assert (
-        bent[0, edge, 3] > 0.3 and bent[0, middle, 3] > 0.9
-    )  # three rows from the edge: mostly its own face
-    assert local_shape(pts, None, width=1.5).shape == (1, 49, 3)
+    bent = neighbourhood_normal(pts, side, width=1.5)
+    edge, middle = 3, 24  # (0, 3) and (3, 3) of the 7 × 7 grid
+    assert bent[0, edge, 0] > 0.3 and bent[0, middle, 0] > 0.9
+    assert torch.allclose(neighbourhood_normal(2.0 * pts + 0.1, side, width=1.5), bent, atol=1e-5)
+    # a wall 2 mm thick, its two sides sampled half a spacing apart (as a bowl's rim is, at random)
+    wall = torch.cat([pts, pts + torch.tensor([0.005, 0.005, 0.002])], dim=1)
+    sides = torch.cat([-up, up], dim=1)
+    assert neighbourhood_normal(wall, sides, width=1.0)[0, 24].norm() < 0.5
     with torch.autocast("cpu", dtype=torch.bfloat16):  # computed in fp32 all the same
-        assert torch.allclose(local_shape(pts + 0.2, up, width=1.5), shape, atol=1e-4)
+        assert torch.allclose(neighbourhood_normal(pts + 0.2, side, width=1.5), bent, atol=1e-4)
 
 
-def test_local_shape_input_variant():
-    """``local_width`` adds the neighbourhood's shape to the object points' inputs: translation
+def test_neighbourhood_normal_input_variant():
+    """``local_width`` adds the neighbourhood's mean normal to the object points' inputs: translation
     invariance and permutation equivariance hold, background rows get zeros, and the update's sparse
     encoding still matches the dense gradient."""
     torch.manual_seed(0)
     points, features = random_obs(3, 16, 8)
     normals = torch.nn.functional.normalize(torch.randn(3, 16, 3), dim=-1)
     enc = PointEncoder(16, 8, hidden=32, global_dim=32, out_dim=24, normals=True, local_width=1.5)
-    assert enc.local[0].in_features == 16
+    assert enc.local[0].in_features == 13
     x = enc.normalise(points, features, normals)
-    assert x.shape == (3, 24, 16) and torch.equal(x[:, 16:, 10:], torch.zeros(3, 8, 6))
+    assert x.shape == (3, 24, 13) and torch.equal(x[:, 16:, 10:], torch.zeros(3, 8, 3))
     assert x[:, :16, 10:].abs().sum() > 0
     out = enc(points, features, normals)
     assert torch.allclose(enc(points + torch.tensor([0.2, -0.1, 0.0]), features, normals), out, atol=1e-4)
@@ -138,7 +133,9 @@ def test_local_shape_input_variant():
     plain = PointEncoder(16, 8, hidden=32, global_dim=32, out_dim=24, normals=True)
     assert plain.local[0].in_features == 10
     with pytest.raises(ValueError, match="local_width"):
-        PointEncoder(16, 8, local_width=-1.0)
+        PointEncoder(16, 8, normals=True, local_width=-1.0)
+    with pytest.raises(ValueError, match="needs normals"):
+        PointEncoder(16, 8, local_width=1.0)
 
     index = torch.randint(0, 16, (3,))
     ctx = enc.encode_context(points, features, normals)
