@@ -8,11 +8,14 @@ seeds) success rate at each evaluation step, with the wall-clock minutes at whic
 success rate vs wall-clock minutes (each seed's latest evaluation at or before every
 ``--minute-step``) and the plateau: each seed's mean success over its evaluations from
 ``--plateau-from`` minutes on (many evaluations of 50 episodes average out much of their noise).
+``--windows 0,30,60,100,150`` also gives each seed's mean success over the evaluations inside each
+window of wall-clock minutes (the "0–30 / 30–60 / ... min" figures of docs/results.md).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 from collections import defaultdict
@@ -33,7 +36,14 @@ def main() -> None:
     ap.add_argument(
         "--plateau-from", type=float, default=8.0, help="minutes after which evaluations form the plateau"
     )
+    ap.add_argument(
+        "--windows",
+        type=str,
+        default=None,
+        help="comma-separated wall-clock minutes, e.g. 0,30,60,100,150: each seed's mean success per window",
+    )
     args = ap.parse_args()
+    edges = _window_edges(args.windows) if args.windows else None
     from rich.console import Console
     from rich.table import Table
 
@@ -96,7 +106,20 @@ def main() -> None:
             + " / ".join(f"{p:.1%}" for p in plateau)
             + f"; mean {np.nanmean(plateau):.1%}"
         )
+        windows = None
+        if edges:
+            windows = [window_means(r["evals"], edges) for r in runs]
+            for r, w in zip(runs, windows, strict=True):
+                console.print(
+                    f"{Path(r['run']).name}: "
+                    + " / ".join(
+                        f"{x['from_min']:g}–{x['to_min']:g} min "
+                        + ("–" if x["mean"] is None else f"{x['mean']:.1%} ({x['evaluations']})")
+                        for x in w
+                    )
+                )
         out[f"{algo}/{goals}/{objects}"] = {
+            "windows": windows,
             "runs": [r["run"] for r in runs],
             "plateau_from_min": args.plateau_from,
             "plateau": plateau,
@@ -113,6 +136,32 @@ def main() -> None:
     if args.json:
         atomic_write_text(args.json, json.dumps(out, indent=2))
         print(f"wrote {args.json}")
+
+
+def _window_edges(text: str) -> list[float]:
+    try:
+        edges = [float(x) for x in text.split(",")]
+    except ValueError:
+        sys.exit(f"error: --windows takes comma-separated minutes, e.g. 0,30,60; got {text!r}")
+    if len(edges) < 2 or any(b <= a for a, b in itertools.pairwise(edges)):
+        sys.exit(f"error: --windows needs at least two increasing minutes; got {text!r}")
+    return edges
+
+
+def window_means(evals: list[dict], edges: list[float]) -> list[dict]:
+    """Mean success of the evaluations whose ``wall_s`` lies in each ``[edges[i], edges[i+1])`` minutes
+    window (the last one closed), with how many there were; ``mean`` None for an empty window."""
+    out = []
+    for i, (lo, hi) in enumerate(itertools.pairwise(edges)):
+        last = i == len(edges) - 2
+        inside = [
+            e["success_rate"]
+            for e in evals
+            if lo * 60 <= e["wall_s"] and (e["wall_s"] <= hi * 60 if last else e["wall_s"] < hi * 60)
+        ]
+        mean = float(np.mean(inside)) if inside else None
+        out.append({"from_min": lo, "to_min": hi, "mean": mean, "evaluations": len(inside)})
+    return out
 
 
 if __name__ == "__main__":

@@ -195,3 +195,44 @@ def test_render_gap_pose_noise_observes_from_a_pose_off_the_true_one():
     moved = shift[shift > 0]
     assert len(moved) > 0 and 0.0005 < np.median(moved) < 0.02
     assert not np.array_equal(off["features"], plain["features"])  # the goal flow, from the pose off
+
+
+def test_curves_window_means(tmp_path):
+    """``bench/curves.py --windows``: each seed's mean success over the evaluations inside each window
+    of wall-clock minutes (the last window closed), None where a window holds none; bad edges are
+    refused in one line."""
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in ("config.json", "metrics.jsonl"):
+        (run / name).write_text((OLD_RUN / name).read_text())
+    evals = [(5, 0.2), (25, 0.4), (30, 0.5), (59, 0.7), (90, 0.9)]  # (minute, success)
+    (run / "eval.jsonl").write_text(
+        "".join(
+            json.dumps(
+                {
+                    "env_steps": 100 * i,
+                    "updates": 50 * i,
+                    "wall_s": 60.0 * m,
+                    "success_rate": s,
+                    "episodes": 50,
+                }
+            )
+            + "\n"
+            for i, (m, s) in enumerate(evals, 1)
+        )
+    )
+    (group,) = _run_bench("curves.py", [str(run), "--windows", "0,30,60,90,150"], tmp_path).values()
+    (windows,) = group["windows"]
+    assert [(w["mean"], w["evaluations"]) for w in windows] == [
+        (pytest.approx(0.3), 2),
+        (pytest.approx(0.6), 2),
+        (None, 0),
+        (pytest.approx(0.9), 1),
+    ]
+    bad = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "curves.py"), str(run), "--windows", "30,10"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert bad.returncode != 0 and "increasing" in bad.stderr and "Traceback" not in bad.stderr
