@@ -31,7 +31,7 @@ from sim.schema import STRICT, one_line
 CHECKPOINT_FORMAT = 1
 #: TrainConfig keys that measurements showed do not help (docs/experiments.md), with the value that
 #: made them inert: a run that recorded them at that value loads as before.
-REMOVED_KEYS: dict[str, Any] = {"augment": "none"}
+REMOVED_KEYS: dict[str, Any] = {"augment": "none", "tilt_shaping": 0.0}
 #: Values of keys a config.json written before the key existed had in effect.
 LEGACY_VALUES: dict[str, Any] = {"workers": 1}
 #: Run fields that ``agent_config`` gives the learner itself: an ``[agent]`` table that names one must
@@ -113,12 +113,6 @@ class TrainConfig:
     """6D goals: the share of training episodes whose goal is a flip (another face up, tilt ≥ 30°);
     None draws goals as evaluation does (about half are flips). Evaluations during training and
     ``hydo eval`` always draw as drawn."""
-    tilt_shaping: NonNegFloat = 0.0
-    """6D goals: metres of reward per radian that a primitive turns the object towards the goal's face,
-    as potential-based shaping (Ng et al. 1999; the best policy is unchanged): the stored reward is
-    ``r + w (θ − γ θ')``, θ / θ' the goal tilt up to symmetry before / after the push (θ' is measured
-    at a terminal state too: ~0 at a success, so leaving the bin earns nothing). Meant to pull flips out of the local optimum of the flow reward, where an object lies on
-    the wrong face near the goal's position. 0: off (the paper's reward)."""
     n_step: Count = 1
     """Primitives per TD target: the critic learns from the return of up to ``n_step`` primitives of
     an episode and bootstraps after them (``models.replay.ReplayBuffer.n_step_chain``)."""
@@ -152,11 +146,6 @@ class TrainConfig:
         if self.relabel_future and self.task is not None:
             raise ValueError(
                 "`relabel_future` needs a goal fixed over the episode; the --task goals follow the object"
-            )
-        if self.tilt_shaping and (self.goals != "6d" or self.task is not None or self.relabel_future):
-            raise ValueError(
-                '`tilt_shaping` shapes 6D goals by their tilt: it needs goals = "6d", no task and no '
-                "`relabel_future` (a relabelled goal's tilt is not stored)"
             )
         if self.flip_share is not None and (self.goals != "6d" or self.task is not None):
             raise ValueError('`flip_share` mixes 6D goals: it needs goals = "6d" and no task')

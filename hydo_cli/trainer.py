@@ -409,13 +409,11 @@ class Trainer:
         metrics_log = JsonlLog(self.run_dir / "metrics.jsonl", tb, "train") if lead else None
         eval_log = JsonlLog(self.run_dir / "eval.jsonl", tb, "eval") if lead else None
 
-        def start_episodes() -> tuple[list[dict], list[float]]:
-            """A new episode in every env: observations, and goal tilts θ (rad) for tilt_shaping."""
-            resets = [env.reset(seed=int(self.rng.integers(2**31))) for env in self.envs]
-            return [o for o, _ in resets], [np.radians(i.get("goal_tilt_deg", 0.0)) for _, i in resets]
+        def start_episodes() -> list[dict]:
+            """A new episode in every env: its first observations."""
+            return [env.reset(seed=int(self.rng.integers(2**31)))[0] for env in self.envs]
 
-        obs, tilt = start_episodes()
-        gamma = self.agent.config.gamma
+        obs = start_episodes()
         ep_return = np.zeros(len(self.envs))
         finished: list[tuple[float, float]] = []
         last_metrics: dict[str, float] = {}
@@ -472,19 +470,13 @@ class Trainer:
                         # like the goal: it can change with the object's pose) for hindsight goals
                         flow_goal_T = env.T_goal_eff.copy()
                         next_obs, reward, terminated, truncated, info = env.step(action)
-                        stored = reward
-                        if cfg.tilt_shaping:  # potential Φ = −w θ: r + γ Φ(s') − Φ(s)
-                            # also at a terminal s': ~0 at a success, and no bonus for leaving the bin
-                            tilt_next = np.radians(info["goal_tilt_deg"])
-                            stored = reward + cfg.tilt_shaping * (tilt[k] - gamma * tilt_next)
-                            tilt[k] = tilt_next
                         rows.append(
                             Transition(
                                 points=obs[k]["points"],
                                 features=obs[k]["features"],
                                 index=action[0],
                                 motion=action[1],
-                                reward=stored,
+                                reward=reward,
                                 next_points=next_obs["points"],
                                 next_features=next_obs["features"],
                                 terminated=terminated,
@@ -501,8 +493,7 @@ class Trainer:
                         if terminated or truncated:
                             finished.append((float(info["success"]), float(ep_return[k])))
                             ep_return[k] = 0.0
-                            next_obs, start = env.reset(seed=int(self.rng.integers(2**31)))
-                            tilt[k] = np.radians(start.get("goal_tilt_deg", 0.0))
+                            next_obs, _ = env.reset(seed=int(self.rng.integers(2**31)))
                         obs[k] = next_obs
                     self.buffer.add(Transition(*(np.asarray(col) for col in zip(*rows, strict=True))))
                     self.env_steps += cfg.n_envs  # all workers stepped their share
@@ -538,7 +529,7 @@ class Trainer:
                         if lead:
                             self._eval_and_log(eval_log, t_start, progress)
                             # it played its own episodes on these envs: the interrupted ones end here
-                            obs, tilt = start_episodes()
+                            obs = start_episodes()
                             self.buffer.end_episodes()
                             ep_return[:] = 0.0
                         next_eval += cfg.eval_every

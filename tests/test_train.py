@@ -166,57 +166,6 @@ def test_flip_share_is_refused_for_planar_goals_in_one_line():
     assert "\n" not in str(e.value)
 
 
-def test_tilt_shaping_is_refused_outside_6d_goals_in_one_line():
-    from hydo_cli.config import TrainConfig
-    from hydo_cli.errors import HydoError
-
-    assert TrainConfig.parse({"goals": "6d", "tilt_shaping": 0.05}, "run.toml").tilt_shaping == 0.05
-    for bad in ({"goals": "planar"}, {"goals": "6d", "relabel_future": 0.2}):
-        with pytest.raises(HydoError, match=r"run\.toml.*tilt_shaping") as e:
-            TrainConfig.parse({**bad, "tilt_shaping": 0.05}, "run.toml")
-        assert "\n" not in str(e.value)
-
-
-def test_tilt_shaping_stores_the_potential_difference(tmp_path):
-    """``tilt_shaping = w``: the replay holds ``r + w (θ − γ θ')``. Two runs of one seed take the same
-    random first steps; their stored rewards differ by exactly that, with θ' the tilt up to symmetry
-    from the pose reached to the goal (recomputed from the replay) and θ the same env's previous θ'."""
-    import numpy as np
-
-    from sim.goals import tilt_deg
-    from sim.objects import load_objects
-    from sim.symmetry import symmetries
-
-    w, gamma, n_envs = 0.05, 0.99, 4
-    cfg = TINY.replace('"cube"', '"box_00"').replace('"planar"', '"6d"').replace("steps = 48", "steps = 24")
-    cfg = cfg.replace("learning_starts = 16", "learning_starts = 24").replace(
-        "threads = 1\n", "threads = 1\nworkers = 1\n"
-    )
-    rewards = {}
-    for shaping in (0.0, w):
-        path = tmp_path / f"w{shaping}.toml"
-        path.write_text(cfg.replace("threads = 1\n", f"threads = 1\ntilt_shaping = {shaping}\n"))
-        run = tmp_path / f"run{shaping}"
-        r = hydo("train", "--config", str(path), "--seed", "5", "--out", str(run))
-        assert r.returncode == 0, r.stderr[-2000:]
-        with np.load(run / "replay.npz") as z:
-            rewards[shaping] = z["reward"].astype(np.float64)
-            achieved, goal = z["achieved_T"], z["next_goal_T"]
-            done = z["terminated"] | z["truncated"]
-    assert len(rewards[w]) == 24
-    S = symmetries(load_objects("box_00")[0])
-
-    def T(a):
-        return np.vstack([a.astype(np.float64), [0, 0, 0, 1]])
-
-    after = np.radians([tilt_deg(T(a), T(g), S) for a, g in zip(achieved, goal, strict=True)])  # θ'
-    before = (rewards[w] - rewards[0.0]) / w + gamma * after  # θ, solved from the stored rewards
-    for i in range(n_envs, 24):  # an env's θ is its previous push's θ' within an episode
-        if not done[i - n_envs]:
-            assert before[i] == pytest.approx(after[i - n_envs], abs=2e-3), i
-    assert before.max() > 0.5  # some goals are flips: the shaping was not zero throughout
-
-
 def test_an_evaluation_during_training_does_not_splice_episodes(tmp_path):
     """Evaluations run on the training envs. Every pair of stored transitions the replay links as one
     episode (``next_slot``: hindsight goals, n-step returns) must continue it: the same cloud and
