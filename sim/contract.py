@@ -8,7 +8,8 @@ Observation (one per decision), all float32, world frame, metres::
 
     points   (N, 3)       object points first (N_obj), then background points (N_bg)
     features (N, 4)       [is_object, goal_flow_x, goal_flow_y, goal_flow_z]
-    normals  (N_obj, 3)   outward unit normals of the object points (primitive only, not the network)
+    normals  (N_obj, 3)   outward unit normals of the object points (the primitive approaches along
+                          them; the encoder takes them too when ``AgentConfig.encoder_normals``)
 
 ``goal_flow = T_goal · T_obj⁻¹ · p − p`` for object points, 0 for background points.
 Reward ``r = −mean_i ‖goal_flow_i‖`` over object points; success when that mean is < 3 cm.
