@@ -61,7 +61,12 @@ AGENT_FORMAT = "hydo-agent/1"
 #: Options that measurements showed do not help (docs/experiments.md), with the value that made them
 #: inert. A checkpoint that recorded them at that value loads as before; any other value is refused.
 #: (``critic_value_min/max`` only shaped the removed categorical critic's bins.)
-REMOVED_OPTIONS: dict[str, Any] = {"encoder_knn": 0, "critic_layer_norm": False, "critic_bins": 0}
+REMOVED_OPTIONS: dict[str, Any] = {
+    "encoder_knn": 0,
+    "critic_layer_norm": False,
+    "critic_bins": 0,
+    "encoder_local_width": 0.0,
+}
 REMOVED_INERT = ("critic_value_min", "critic_value_max")
 
 
@@ -94,12 +99,6 @@ class AgentConfig:
     from one point: with it and ``critic_motion_dirs=16``, 60-min planar runs reached 78.4 / 81.6 %
     against 62.4 / 67.6 % without (docs/results.md). False in checkpoints made before it was the
     default."""
-    encoder_local_width: float = 0.0
-    """> 0 (needs ``encoder_normals``): each object point's input also gets the mean normal of its
-    neighbourhood among the object points (``models.encoder.neighbourhood_normal``), a Gaussian this
-    many nearest-neighbour spacings wide: the local shape a one-level PointNet does not see (an
-    edge bends it, a bowl's thin rim shrinks it). Computed inside the encoder graph, so the ONNX
-    interface is unchanged. 0: off (and in checkpoints made before it)."""
 
     # heads
     actor_hidden: int = 64
@@ -231,14 +230,6 @@ class AgentConfig:
         )
         check(
             self.critic_motion_dirs >= 0, f"`critic_motion_dirs` must be ≥ 0. Got {self.critic_motion_dirs}."
-        )
-        check(
-            self.encoder_local_width >= 0 and math.isfinite(self.encoder_local_width),
-            f"`encoder_local_width` must be ≥ 0 (0: off). Got {self.encoder_local_width}.",
-        )
-        check(
-            not self.encoder_local_width or self.encoder_normals,
-            "`encoder_local_width` averages the object points' normals: it needs `encoder_normals = true`.",
         )
         # Rates, scales and noise levels: a zero or negative one trains nothing or divides by zero.
         for name in (
@@ -424,7 +415,6 @@ class HybridAgent:
                 global_dim=config.encoder_global,
                 length_scale=config.length_scale,
                 normals=config.encoder_normals,
-                local_width=config.encoder_local_width,
             )
             self.critic = TwinQ(
                 config.feature_dim,

@@ -1,4 +1,4 @@
-"""Per-point point-cloud encoder: a small PointNet, optionally told each point's neighbourhood normal.
+"""Per-point point-cloud encoder: a small PointNet.
 
 Why not HACMan's PointNet++: on the 2-core CPU this project trains on, a HACMan-size PointNet++
 costs 0.3–3 s per gradient update (``../shared/reference/measurements.md``); the kNN-gathered tensors
@@ -8,7 +8,7 @@ room for the K-step motion chain, which has to run on every object point in ever
 
 Architecture (H = ``hidden``, G = ``global_dim``, D = ``out_dim``)::
 
-    x_i   = [ (p_i − mean(p_obj)) / s,  is_object_i,  goal_flow_i / s (, n_i) (, around_i) ]
+    x_i   = [ (p_i − mean(p_obj)) / s,  is_object_i,  goal_flow_i / s (, n_i) ]  (7,) or (10,)
                                                      s = length_scale; n_i: normal (0 on background)
     h_i   = MLP_local(x_i)                                                  (H,)    all N points
     g     = [ max_{i ∈ obj} W_g h_i , max_{i ∈ bg} W_g h_i ]                (2G,)   per cloud
@@ -20,11 +20,9 @@ surface there, and a PointNet cannot estimate a normal from one point. With them
 runs reached 78–82 % instead of 62–68 % (docs/results.md), so ``AgentConfig.encoder_normals`` is on
 by default.
 
-With ``local_width > 0`` each object point's input also gets ``around_i``
-(:func:`neighbourhood_normal`), the mean normal of its neighbours among the object points: a face
-keeps it at n_i, an edge bends it, a thin wall or rim shrinks it. One of the second-order surface
-facts a PointNet++ layer learns from a neighbourhood, given as a fixed input: it costs ~16 % of an
-update (a learned kNN EdgeConv cost 2.3× per step, docs/experiments.md).
+Local shape beyond the normal was tried twice and not kept: a learned kNN EdgeConv (2.3× the time
+per step) and each point's neighbourhood mean normal as an input (one 6D run, 13 points under the
+same machine's reference): docs/experiments.md.
 
 Only object points get output features: every head (location, motion, critic) is evaluated on
 object points only, so background points contribute through the global feature alone and the head
@@ -50,38 +48,6 @@ def _max_pool(x: torch.Tensor) -> torch.Tensor:
     return x.max(dim=1).values if x.requires_grad else x.amax(dim=1)
 
 
-def neighbourhood_normal(points: torch.Tensor, normals: torch.Tensor, width: float) -> torch.Tensor:
-    """The mean normal of each object point's neighbourhood: ``points (B, N_obj, 3)`` metres,
-    ``normals (B, N_obj, 3)`` unit → ``(B, N_obj, 3)``.
-
-    The neighbourhood is a Gaussian weighting of the other object points, of standard deviation
-    σ = ``width`` × the cloud's mean nearest-neighbour spacing (so the same few neighbours on a 5 or a
-    20 cm object: on a surface ~2π·width² of them, 6 at width 1). In the middle of a face the mean is
-    the point's own normal; an edge or a corner bends it towards the other face; a thin wall or rim,
-    whose neighbours face both ways, shrinks it. Second-order surface shape that one point's normal
-    cannot show. (The neighbours' mean offset was weighed too and left out: on the 128-point clouds
-    it is mostly sampling noise, no larger at a box's edges than on its faces.) No parameters: an
-    input, made of matmuls and elementwise ops that export to ONNX as they are; a hard k-nearest
-    search (``topk`` over every row) was several times slower on this CPU."""
-    if torch.is_autocast_enabled("cpu"):
-        # bf16 |p|² + |q|² − 2 p·q errs by ~1e-4 m² at object coordinates: a neighbour's own distance
-        with torch.autocast("cpu", enabled=False):
-            return neighbourhood_normal(points.float(), normals.float(), width)
-    n = points.shape[1]
-    p = points - points.mean(dim=1, keepdim=True)  # (B, N, 3) centred: smaller |p|², a smaller error
-    sq = (p * p).sum(-1)  # (B, N)
-    # (B, N, N) squared distances in m², each point's own pushed out of reach (+1 m²). Few passes over
-    # the B·N² entries: at ~1 ms per pass for a batch of 64 on this CPU, each one counts
-    self_out = torch.eye(n, dtype=p.dtype, device=p.device)
-    d2 = torch.baddbmm(sq[:, :, None] + (sq[:, None, :] + self_out), p, p.transpose(1, 2), alpha=-2.0)
-    spacing2 = d2.amin(dim=-1).clamp_min(0.0).sqrt().mean(dim=-1)[:, None, None] ** 2  # (B, 1, 1) m²
-    sigma2 = width * width * spacing2.clamp_min(1e-12)  # (B, 1, 1)
-    # the exponent floored at -30: weights under 1e-13 count for nothing, and denormal floats (exp
-    # of ~-90 and below) would make every later product several times slower on this CPU
-    w = torch.exp((d2 * (-0.5 / sigma2)).clamp_min(-30.0))  # (B, N, N)
-    return (w @ normals) / w.sum(-1, keepdim=True)  # (B, N, 3); the sum is ≥ 1e-13·(N − 1)
-
-
 class EncoderContext(NamedTuple):
     """Intermediate per-point and per-cloud tensors; ``head`` turns them into features."""
 
@@ -101,9 +67,6 @@ class PointEncoder(nn.Module):
         length_scale: metres mapped to one network unit for positions and goal flow (objects are
             ~5–20 cm, the bin ~0.5 m, so 0.1 m keeps inputs at unit scale).
         normals: take the object points' normals ``(B, N_obj, 3)`` as a third input.
-        local_width: > 0 (needs ``normals``), give each object point the mean normal of its
-            neighbourhood, this many nearest-neighbour spacings wide (:func:`neighbourhood_normal`);
-            0: off.
     """
 
     def __init__(
@@ -115,20 +78,14 @@ class PointEncoder(nn.Module):
         global_dim: int = 64,
         length_scale: float = 0.1,
         normals: bool = False,
-        local_width: float = 0.0,
     ) -> None:
         super().__init__()
         if n_obj < 1 or n_bg < 0:
             raise ValueError(f"`n_obj` must be ≥ 1 and `n_bg` ≥ 0. Got {n_obj}, {n_bg}.")
-        if local_width < 0 or (local_width > 0 and (n_obj < 2 or not normals)):
-            raise ValueError(
-                f"`local_width` must be ≥ 0; > 0 needs normals and n_obj ≥ 2. Got {local_width}, {normals}, {n_obj}."
-            )
         self.n_obj, self.n_bg, self.out_dim = n_obj, n_bg, out_dim
         self.uses_normals = normals
-        self.local_width = float(local_width)
         self.register_buffer("inv_scale", torch.tensor(1.0 / length_scale))
-        n_in = 7 + (3 if normals else 0) + (3 if local_width else 0)
+        n_in = 10 if normals else 7
         self.local = nn.Sequential(nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
         self.global_proj = nn.Linear(hidden, global_dim)
         n_pools = 2 if n_bg > 0 else 1
@@ -140,7 +97,7 @@ class PointEncoder(nn.Module):
         self, points: torch.Tensor, features: torch.Tensor, normals: torch.Tensor | None = None
     ) -> torch.Tensor:
         """``points (B, N, 3)`` metres, ``features (B, N, 4)`` (, ``normals (B, N_obj, 3)``) → network
-        input ``(B, N, C)``: C = 7, + 3 with normals, + 3 more with ``local_width``.
+        input ``(B, N, C)``: C = 7, or 10 with normals.
 
         Positions are taken relative to the object's centroid (translation invariance: the same push
         on the same object means the same thing anywhere in the bin) and, like the goal flow, divided
@@ -152,9 +109,6 @@ class PointEncoder(nn.Module):
         parts = [pos, features[..., :1], flow]
         if self.uses_normals:  # background points have no normal: zeros (their is_object flag is 0)
             parts.append(torch.cat([normals, torch.zeros_like(points[:, self.n_obj :])], dim=1))
-        if self.local_width:  # background rows: zeros, as for the normals
-            around = neighbourhood_normal(points[:, : self.n_obj], normals, self.local_width)
-            parts.append(torch.cat([around, torch.zeros_like(points[:, self.n_obj :])], dim=1))
         return torch.cat(parts, dim=-1)  # (B, N, C)
 
     def encode_context(

@@ -72,17 +72,6 @@ def test_encoder_with_normals_exports_with_parity(tmp_path):
         policy.decide(pts, feats, noise)
 
 
-def test_encoder_with_neighbourhood_normals_exports_with_parity(tmp_path):
-    """``encoder_local_width``: the neighbourhood normal is computed inside the encoder graph,
-    with the same inputs and tolerance as without it."""
-    manifest = _export_with_parity(tmp_path / "model", encoder_normals=True, encoder_local_width=1.5)
-    assert manifest["encoder_inputs"] == ["points", "features", "normals"]
-    import onnx
-
-    ops = {n.op_type for n in onnx.load(str(tmp_path / "model" / "encoder.onnx")).graph.node}
-    assert "Exp" in ops  # the neighbourhood's weights are in the graph, not left to the caller
-
-
 def _observation():
     rng = np.random.default_rng(3)
     pts = rng.uniform(-0.1, 0.1, (1, 48, 3)).astype(np.float32)

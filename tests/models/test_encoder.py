@@ -4,7 +4,7 @@ import pytest
 import torch
 from learner_util import random_obs
 
-from models.encoder import PointEncoder, neighbourhood_normal
+from models.encoder import PointEncoder
 
 
 def test_shapes_and_object_only_output():
@@ -81,70 +81,3 @@ def test_encode_for_update_matches_the_dense_gradient(n_bg):
     for p, g in zip(enc.parameters(), dense_grads, strict=True):
         assert p.grad is not None and torch.allclose(p.grad, g, atol=1e-5), p.shape
     assert any(g.abs().sum() > 0 for g in dense_grads)
-
-
-def _square_patch(n_side: int = 5, spacing: float = 0.01) -> torch.Tensor:
-    """(1, n_side², 3) a flat square grid of points at z = 0.05 m, 1 cm apart."""
-    ij = torch.stack(torch.meshgrid(torch.arange(n_side), torch.arange(n_side), indexing="ij"), -1)
-    xy = spacing * ij.reshape(-1, 2).float()
-    return torch.cat([xy, torch.full((len(xy), 1), 0.05)], -1)[None]
-
-
-def test_neighbourhood_normal_bends_at_an_edge_and_shrinks_on_a_thin_wall():
-    """On one face the mean normal is the face's; where a second face starts it bends towards it (the
-    row at the edge, not three rows away); on a thin wall whose two sides face away from each other
-    it shrinks; the same on a grid twice the size anywhere in the bin, and under bf16 autocast."""
-    pts = _square_patch(7)
-    up = torch.tensor([0.0, 0.0, 1.0]).expand(1, 49, 3)
-    assert torch.allclose(neighbourhood_normal(pts, up, width=1.5), up, atol=1e-6)
-    side = up.clone()
-    side[:, 7:] = torch.tensor([1.0, 0.0, 0.0])  # a second face from row 1 on: row 0 sits at an edge
-    bent = neighbourhood_normal(pts, side, width=1.5)
-    edge, middle = 3, 24  # (0, 3) and (3, 3) of the 7 × 7 grid
-    assert bent[0, edge, 0] > 0.3 and bent[0, middle, 0] > 0.9
-    assert torch.allclose(neighbourhood_normal(2.0 * pts + 0.1, side, width=1.5), bent, atol=1e-5)
-    # a wall 2 mm thick, its two sides sampled half a spacing apart (as a bowl's rim is, at random)
-    wall = torch.cat([pts, pts + torch.tensor([0.005, 0.005, 0.002])], dim=1)
-    sides = torch.cat([-up, up], dim=1)
-    assert neighbourhood_normal(wall, sides, width=1.0)[0, 24].norm() < 0.5
-    with torch.autocast("cpu", dtype=torch.bfloat16):  # computed in fp32 all the same
-        assert torch.allclose(neighbourhood_normal(pts + 0.2, side, width=1.5), bent, atol=1e-4)
-
-
-def test_neighbourhood_normal_input_variant():
-    """``local_width`` adds the neighbourhood's mean normal to the object points' inputs: translation
-    invariance and permutation equivariance hold, background rows get zeros, and the update's sparse
-    encoding still matches the dense gradient."""
-    torch.manual_seed(0)
-    points, features = random_obs(3, 16, 8)
-    normals = torch.nn.functional.normalize(torch.randn(3, 16, 3), dim=-1)
-    enc = PointEncoder(16, 8, hidden=32, global_dim=32, out_dim=24, normals=True, local_width=1.5)
-    assert enc.local[0].in_features == 13
-    x = enc.normalise(points, features, normals)
-    assert x.shape == (3, 24, 13) and torch.equal(x[:, 16:, 10:], torch.zeros(3, 8, 3))
-    assert x[:, :16, 10:].abs().sum() > 0
-    out = enc(points, features, normals)
-    assert torch.allclose(enc(points + torch.tensor([0.2, -0.1, 0.0]), features, normals), out, atol=1e-4)
-    perm = torch.randperm(16)
-    order = torch.cat([perm, torch.arange(16, 24)])
-    assert torch.allclose(
-        enc(points[:, order], features[:, order], normals[:, perm]), out[:, perm], atol=1e-5
-    )
-    plain = PointEncoder(16, 8, hidden=32, global_dim=32, out_dim=24, normals=True)
-    assert plain.local[0].in_features == 10
-    with pytest.raises(ValueError, match="local_width"):
-        PointEncoder(16, 8, normals=True, local_width=-1.0)
-    with pytest.raises(ValueError, match="needs normals"):
-        PointEncoder(16, 8, local_width=1.0)
-
-    index = torch.randint(0, 16, (3,))
-    ctx = enc.encode_context(points, features, normals)
-    dense = enc.head(ctx.local[torch.arange(3), index], ctx.context)
-    dense.sum().backward()
-    dense_grads = [p.grad.clone() for p in enc.parameters()]
-    enc.zero_grad()
-    sparse, _ = enc.encode_for_update(points, features, normals, index)
-    sparse.sum().backward()
-    assert torch.allclose(sparse, dense, atol=1e-6)
-    for got, want in zip([p.grad for p in enc.parameters()], dense_grads, strict=True):
-        assert torch.allclose(got, want, atol=1e-5)
