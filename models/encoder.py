@@ -21,8 +21,8 @@ runs reached 78–82 % instead of 62–68 % (docs/results.md), so ``AgentConfig.
 by default.
 
 Local shape beyond the normal was tried twice and not kept: a learned kNN EdgeConv (2.3× the time
-per step) and each point's neighbourhood mean normal as an input (one 6D run, 13 points under the
-same machine's reference): docs/experiments.md.
+per step) and each point's neighbourhood mean normal as an input (one 6D run: 52.8 % on unseen
+objects, below every default seed): docs/experiments.md.
 
 Only object points get output features: every head (location, motion, critic) is evaluated on
 object points only, so background points contribute through the global feature alone and the head
