@@ -46,6 +46,7 @@ from rich.table import Table  # noqa: E402
 
 from sim.atomic import atomic_write_text  # noqa: E402
 from sim.baselines import heuristic_action  # noqa: E402
+from sim.contract import CONTACT_MODELS  # noqa: E402
 from sim.env import BinEnv  # noqa: E402
 from sim.goals import FLIP_TILT_DEG  # noqa: E402
 
@@ -143,6 +144,7 @@ def main() -> None:
     ap.add_argument("--objects", default="train")
     ap.add_argument("--goals", default="planar", choices=["planar", "6d"])
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--contacts", default="hydo", choices=CONTACT_MODELS, help="the scene's contact model")
     ap.add_argument("--json", type=Path, help="write results to this JSON file")
     args = ap.parse_args()
     if args.run is None:
@@ -160,7 +162,7 @@ def main() -> None:
         counts = [int(c) for c in args.top.split(",")]
         n_obj, n_bg = cfg.n_obj, cfg.n_bg
 
-    env = BinEnv(objects=args.objects, goals=args.goals, n_obj=n_obj, n_bg=n_bg)
+    env = BinEnv(objects=args.objects, goals=args.goals, n_obj=n_obj, n_bg=n_bg, contacts=args.contacts)
     results = {}
     for c in counts:
         rng = np.random.default_rng(args.seed)
@@ -183,7 +185,9 @@ def main() -> None:
         }
 
     source = f"{args.run}'s top-ranked proposals" if args.run else "heuristic + random candidates"
-    table = Table(title=f"one-step lookahead over {source} ({args.objects} objects, {args.goals} goals)")
+    table = Table(
+        title=f"one-step lookahead over {source} ({args.objects} objects, {args.goals} goals, {args.contacts} contacts)"
+    )
     for col in (
         "top" if args.run else "candidates",
         "episodes",

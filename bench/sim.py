@@ -50,13 +50,14 @@ import numpy as np  # noqa: E402
 
 import sim.env  # noqa: E402, F401  (registers hydo/Bin-v0)
 from sim.atomic import atomic_write_text  # noqa: E402
-from sim.contract import GOAL_MODES  # noqa: E402
+from sim.contract import CONTACT_MODELS, GOAL_MODES  # noqa: E402
 from sim.primitive import SIM_WORKSPACE, PrimitiveRejected, check_plan, primitive_waypoints  # noqa: E402
 
 
-def bench_env_steps(seconds: float, seed: int, goals: str = "planar") -> dict:
-    """Random-policy env steps (mesh observations, ``goals`` mode) for ``seconds`` of stepping time."""
-    env = gymnasium.make("hydo/Bin-v0", objects="train", goals=goals, obs="mesh")
+def bench_env_steps(seconds: float, seed: int, goals: str = "planar", contacts: str = "hydo") -> dict:
+    """Random-policy env steps (mesh observations, ``goals`` mode, ``contacts`` model) for ``seconds``
+    of stepping time."""
+    env = gymnasium.make("hydo/Bin-v0", objects="train", goals=goals, obs="mesh", contacts=contacts)
     env.action_space.seed(seed)
     env.reset(seed=seed)  # builds the first scene; not timed
     steps, step_s, resets, reset_s = 0, 0.0, 0, 0.0
@@ -238,13 +239,16 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--goals", choices=GOAL_MODES, default="planar", help="goal mode of the env-steps figure"
     )
+    parser.add_argument(
+        "--contacts", choices=CONTACT_MODELS, default="hydo", help="contact model of the env-steps figure"
+    )
     args = parser.parse_args(argv)
     if args.seconds <= 0:
         parser.error(f"--seconds must be > 0. Got {args.seconds}.")
 
     t0 = time.perf_counter()
     results: dict = {}
-    results.update(bench_env_steps(args.seconds, args.seed, args.goals))
+    results.update(bench_env_steps(args.seconds, args.seed, args.goals, args.contacts))
     results.update(bench_primitives(n=30, seed=args.seed))
     results.update(bench_physics(seconds=min(3.0, args.seconds), seed=args.seed))
     results.update(bench_render(n_objects=4, per_object=8, seed=args.seed))
@@ -260,6 +264,7 @@ def main(argv: list[str] | None = None) -> dict:
         "mujoco_gl": os.environ.get("MUJOCO_GL"),
         "seconds": args.seconds,
         "goals": args.goals,
+        "contacts": args.contacts,
         "seed": args.seed,
         "wall_s": round(time.perf_counter() - t0, 1),
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),

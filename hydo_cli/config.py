@@ -24,7 +24,7 @@ from pydantic.dataclasses import dataclass
 
 from hydo_cli.errors import HydoError
 from models.choices import ALGOS, Algo
-from sim.contract import GOAL_MODES
+from sim.contract import CONTACT_MODELS, GOAL_MODES
 from sim.schema import STRICT, one_line
 
 #: Format of a run's ``checkpoint.pt`` (written by the trainer, read by ``policies.load_agent``).
@@ -58,6 +58,7 @@ NonNegFloat = Annotated[float, Field(ge=0)]
 Fraction = Annotated[float, Field(ge=0, le=1)]
 AlgoName = Literal[tuple(ALGOS)]  # type: ignore[valid-type]
 GoalMode = Literal[tuple(GOAL_MODES)]  # type: ignore[valid-type]
+ContactModel = Literal[tuple(CONTACT_MODELS)]  # type: ignore[valid-type]
 Clutter = Annotated[int, _one_of(CLUTTER)]
 NonEmptyStr = Annotated[str, Field(min_length=1)]
 
@@ -113,6 +114,11 @@ class TrainConfig:
     """6D goals: the share of training episodes whose goal is a flip (another face up, tilt ≥ 30°);
     None draws goals as evaluation does (about half are flips). Evaluations during training and
     ``hydo eval`` always draw as drawn."""
+    contacts: ContactModel = "hydo"
+    """The training scene's contact model (``sim.scene``): "hydo", the scene's own, or "hacman", the
+    contact settings of HACMan's bin env (the paper's simulator: grippier fingertips, torsional
+    friction, light objects, elliptic cones with no-slip iterations, no palm collisions). Evaluate such
+    a run with ``hydo eval --contacts hacman``."""
     n_step: Count = 1
     """Primitives per TD target: the critic learns from the return of up to ``n_step`` primitives of
     an episode and bootstraps after them (``models.replay.ReplayBuffer.n_step_chain``)."""

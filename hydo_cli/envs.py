@@ -17,12 +17,13 @@ def make_envs(
     task=None,
     task_start="fixed",
     flip_share=None,
+    contacts="hydo",
 ):
     """``n_envs`` envs of one configuration (point counts default to the contract's).
 
     ``task`` (``sim.tasks``) replaces objects, goals and clutter by the task's scene; ``task_start``
     is ``fixed`` (evaluation) or ``random`` (training). ``flip_share``: training's mix of 6D goals
-    (``BinEnv``).
+    (``BinEnv``). ``contacts``: the scene's contact model (``sim.scene.CONTACT_MODELS``).
     """
     from sim.contract import DEFAULT_N_BG, DEFAULT_N_OBJ
     from sim.env import BinEnv
@@ -49,6 +50,7 @@ def make_envs(
             task=task,
             task_start=task_start,
             flip_share=flip_share,
+            contacts=contacts,
         )
         for _ in range(n_envs)
     ]

@@ -26,6 +26,7 @@ from hydo_cli.errors import HydoError
 from hydo_cli.options import (
     ChainNoise,
     ClutterOpt,
+    Contacts,
     EvalWeights,
     Goals,
     ObjectsOpt,
@@ -129,6 +130,14 @@ def evaluate(
     ] = 100,
     seed: SeedOpt = 0,
     obs: Annotated[ObsSource, typer.Option("--obs", help="Observation source.")] = ObsSource.mesh,
+    contacts: Annotated[
+        Contacts,
+        typer.Option(
+            "--contacts",
+            help="The scene's contact model: hydo (its own) or hacman (HACMan's bin env's settings; "
+            'for runs trained with contacts = "hacman").',
+        ),
+    ] = Contacts.hydo,
     compare: Annotated[
         bool,
         typer.Option(
@@ -237,8 +246,15 @@ def evaluate(
     }
     trained = [(t, lp.goals) for t, lp in loaded.items()] + [(t, r["goals"]) for t, r in records.items()]
     goal_mode = resolve_goals(goals, trained, task_def is not None)
+    for t, lp in loaded.items():  # a run plays in another contact model only when asked to
+        if lp.contacts not in (None, contacts.value):
+            console.print(
+                f"[yellow]note:[/] {t} was trained with contacts {lp.contacts}; this evaluation plays in "
+                f"{contacts.value}'s (--contacts {lp.contacts} to match)",
+                soft_wrap=True,  # one line, whatever the terminal's width
+            )
     settings = {"goals": goal_mode, "episodes": episodes, "seed": seed, "clutter": clutter}
-    settings |= {"obs": obs.value, "feasible_only": feasible_only}
+    settings |= {"obs": obs.value, "feasible_only": feasible_only, "contacts": contacts.value}
     recorded = {t: recorded_runs(t, r, settings, splits) for t, r in records.items()}
     seen: dict[tuple, str] = {}  # (target, split) → where it came from: a run pooled twice is refused
     for t in live:
@@ -292,6 +308,7 @@ def evaluate(
                         lp.n_bg,
                         render=video is not None,
                         task=task.value if task else None,
+                        contacts=contacts.value,
                     )
                 bar = progress.add_task(f"{target} ({split})", total=episodes)
                 t0 = time.perf_counter()
@@ -347,6 +364,7 @@ def evaluate(
         "goals": goal_mode,
         "clutter": clutter,
         "obs": obs.value,
+        "contacts": contacts.value,
         "episodes": episodes,
         "seed": seed,
         # one method: the IQM across its runs; several: None (per method under "aggregate")

@@ -7,10 +7,10 @@ from typing import Annotated
 import typer
 
 from models.choices import ChainNoise, EvalWeights
-from sim.contract import Goals, ObsSource
+from sim.contract import Contacts, Goals, ObsSource
 from sim.tasks import TaskName
 
-__all__ = ["ChainNoise", "EvalWeights", "Goals", "ObsSource", "TaskName"]
+__all__ = ["ChainNoise", "Contacts", "EvalWeights", "Goals", "ObsSource", "TaskName"]
 
 
 ObjectsOpt = Annotated[

@@ -38,6 +38,7 @@ class LoadedPolicy:
     description: str
     method: str = ""  # what --compare groups by: the run's / manifest's algo, or the baseline's name
     goals: str | None = None  # the goal mode it was trained on ("planar" | "6d"); None: a baseline
+    contacts: str | None = None  # the contact model it was trained in (a run's config); None: unknown
 
 
 def load_policy(
@@ -183,5 +184,12 @@ def load_policy_from_checkpoint(
         agent.config = dataclasses.replace(agent.config, eval_chain_noise=chain_noise)
     policy = agent_policy(agent, "eval", torch.Generator().manual_seed(seed), feasible_only)
     return LoadedPolicy(
-        policy, cfg.n_obj, cfg.n_bg, agent.eval_stochastic, f"{cfg.algo} ({path})", cfg.algo, cfg.goals
+        policy,
+        cfg.n_obj,
+        cfg.n_bg,
+        agent.eval_stochastic,
+        f"{cfg.algo} ({path})",
+        cfg.algo,
+        cfg.goals,
+        cfg.contacts,
     )

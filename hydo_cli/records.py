@@ -25,7 +25,9 @@ from sim.atomic import atomic_write
 RECORD_SUFFIXES = (".json", ".json.gz")
 
 #: report keys that fix the episodes and how they were played: a record must match on each
-SAME_EPISODES = ("goals", "episodes", "seed", "clutter", "obs", "feasible_only")
+SAME_EPISODES = ("goals", "episodes", "seed", "clutter", "obs", "feasible_only", "contacts")
+#: the value of a key that records made before it existed were made with
+RECORD_DEFAULTS = {"contacts": "hydo"}
 FLAG = {"feasible_only": "feasible-only"}
 #: what the aggregate and the tables read of a run
 RUN_KEYS = (
@@ -60,9 +62,10 @@ def load_record(path: str) -> dict:
         raise HydoError(f"{path} is not a readable `hydo eval --json` report ({e})") from None
     if not isinstance(report, dict) or not isinstance(report.get("runs"), list):
         raise HydoError(f"{path} is not a `hydo eval --json` report: it has no list of runs")
-    missing = [k for k in (*SAME_EPISODES, "task") if k not in report]
+    missing = [k for k in (*SAME_EPISODES, "task") if k not in report and k not in RECORD_DEFAULTS]
     if missing:
         raise HydoError(f"{path} is not a `hydo eval --json` report: it lacks {', '.join(missing)}")
+    report = {**RECORD_DEFAULTS, **report}
     for run in report["runs"]:
         need = RUN_KEYS
         if not isinstance(run, dict) or any(k not in run for k in need):

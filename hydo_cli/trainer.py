@@ -146,6 +146,7 @@ class Trainer:
             task=cfg.task,
             task_start="random",
             flip_share=cfg.flip_share,
+            contacts=cfg.contacts,
         )
         # Worker 0 keeps the serial loop's seeding; the others draw their own episodes and noise.
         seed = cfg.seed if rank == 0 else cfg.seed + 1_000_003 * rank

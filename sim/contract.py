@@ -48,8 +48,17 @@ class ObsSource(str, Enum):
     render = "render"
 
 
+class Contacts(str, Enum):
+    """The training scene's contact model (``sim.scene`` says what each sets): the scene's own, or the
+    contact settings of HACMan's bin env (the simulator the paper's figures come from)."""
+
+    hydo = "hydo"
+    hacman = "hacman"
+
+
 GOAL_MODES = tuple(g.value for g in Goals)
 OBS_SOURCES = tuple(o.value for o in ObsSource)
+CONTACT_MODELS = tuple(c.value for c in Contacts)
 
 #: Default point counts. Chosen by measurement (bench/learner.py): every gradient update is linear in
 #: N, and 128 + 128 keeps the planar task learnable while an update stays cheap on 2 CPU cores.

@@ -24,6 +24,7 @@ Arguments (``gymnasium.make("hydo/Bin-v0", ...)``)
     (``mesh`` | ``render``), ``clutter`` (0, 1, 2 or 5 extra objects in the background cloud),
     ``n_obj``, ``n_bg`` (point counts), ``max_steps``, ``goal_symmetry`` (``object`` | ``none``),
     ``flip_share`` (6D, training: the share of episodes whose goal is a flip; None: as drawn, ~half);
+    ``contacts`` (``hydo`` | ``hacman``: the scene's contact model, ``sim.scene.CONTACT_MODELS``);
     ``task`` (``sim.tasks``: ``push-line`` |
     ``push-align``, the behaviour-diversity variants; they fix the object, goal and obstacles) and
     ``task_start`` (``fixed``: the task's fixed start pose, for evaluation; ``random``: its training
@@ -43,6 +44,7 @@ import numpy as np
 from gymnasium import spaces
 
 from sim.contract import (
+    CONTACT_MODELS,
     DEFAULT_N_BG,
     DEFAULT_N_OBJ,
     FEATURE_DIM,
@@ -97,7 +99,11 @@ class BinEnv(gym.Env):
         task_start: str = "fixed",
         goal_symmetry: str = "object",
         flip_share: float | None = None,
+        contacts: str = "hydo",
     ):
+        if contacts not in CONTACT_MODELS:
+            raise ValueError(f"`contacts` must be one of {list(CONTACT_MODELS)}. Got {contacts!r}.")
+        self.contacts = contacts
         if goal_symmetry not in GOAL_SYMMETRIES:
             raise ValueError(
                 f"`goal_symmetry` must be one of {list(GOAL_SYMMETRIES)}. Got {goal_symmetry!r}."
@@ -163,7 +169,8 @@ class BinEnv(gym.Env):
         if key not in self._scenes:
             if len(self._scenes) > 64:  # clutter makes many combinations: keep memory bounded
                 self._scenes.clear()
-            self._scenes[key] = BinScene(asset, clutter, self.task.obstacles if self.task else ())
+            obstacles = self.task.obstacles if self.task else ()
+            self._scenes[key] = BinScene(asset, clutter, obstacles, contacts=self.contacts)
         return self._scenes[key]
 
     def _refresh_goal(self) -> None:

@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
-from sim.contract import pose_matrix, transform_points
+from sim.contract import CONTACT_MODELS, pose_matrix, transform_points
 from sim.objects import ObjectAsset
 from sim.primitive import BIN_INNER_SIZE_M, FORCE_STOP_N, PUSH_SEGMENTS
 
@@ -158,11 +158,47 @@ def _add_obstacle_body(spec, name: str, obstacle) -> None:
     )
 
 
+# The training scene's contact models (``sim.contract.CONTACT_MODELS``; ``BinScene(contacts=...)``,
+# ``BinEnv``, ``TrainConfig.contacts``). ``hydo``: this scene's own (the values above and in the asset XMLs). ``hacman``: the contact settings
+#: of HACMan's bin env (HACMan-2023/HACMan ``bin_env`` and its robosuite fork), the simulator the paper's
+#: figures come from: elliptic friction cones, impratio 20 and 20 no-slip iterations; fingertip friction
+#: (3, 0.015, 0.0003); objects at 50 kg/m³ with friction (0.95, 0.3, 0.1) and condim 4 (torsional
+#: friction); the bin's geoms at priority 1 and condim 4 (so object-bin contacts keep the bin's 0.5);
+#: the palm does not collide (robosuite's ``transparent_gripper_base``). Not taken over: its 2 ms step,
+#: solref / solimp, wall planes without a top, and its OSC hand (motion targets relative to where the
+#: hand is): the primitive and its geometry stay ``sim.primitive``'s.
+HACMAN_FINGER_FRICTION = (3.0, 0.015, 0.0003)
+HACMAN_OBJECT_FRICTION = (0.95, 0.3, 0.1)
+HACMAN_OBJECT_DENSITY = 50.0  # kg/m^3
+
+
+def _hacman_contacts(spec: mujoco.MjSpec) -> None:
+    """Switch a built training-scene spec to HACMan's contact settings (``CONTACT_MODELS``)."""
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    spec.option.impratio = 20.0
+    spec.option.noslip_iterations = 20
+    for g in spec.geoms:
+        if g.name.startswith("bin_"):
+            g.condim, g.priority = 4, 1
+        elif g.name == "hand_fingers":
+            g.friction = list(HACMAN_FINGER_FRICTION)
+        elif g.name == "hand_palm":
+            g.contype = g.conaffinity = 0
+        elif g.name.startswith(("object_geom", "clutter")) and g.contype:
+            g.friction, g.condim, g.density = list(HACMAN_OBJECT_FRICTION), 4, HACMAN_OBJECT_DENSITY
+
+
 def build_model(
-    asset: ObjectAsset, clutter: tuple[ObjectAsset, ...] = (), obstacles: tuple = ()
+    asset: ObjectAsset,
+    clutter: tuple[ObjectAsset, ...] = (),
+    obstacles: tuple = (),
+    contacts: str = "hydo",
 ) -> mujoco.MjModel:
     """Compile bin + hand + ``asset`` (body ``object``) + clutter (bodies ``clutter{i}``) + static
-    obstacles (bodies ``obstacle{i}``, ``sim.tasks``) + goal ghost."""
+    obstacles (bodies ``obstacle{i}``, ``sim.tasks``) + goal ghost, with contact model ``contacts``
+    (``CONTACT_MODELS``)."""
+    if contacts not in CONTACT_MODELS:
+        raise ValueError(f"`contacts` must be one of {list(CONTACT_MODELS)}. Got {contacts!r}.")
     spec = mujoco.MjSpec.from_file(str(ASSETS / "scene.xml"))
     _add_hand_visuals(spec)
     add_object_body(spec, "object", asset, rgba=[0.85, 0.35, 0.2, 1.0])
@@ -171,6 +207,8 @@ def build_model(
     for i, ob in enumerate(obstacles):
         _add_obstacle_body(spec, f"obstacle{i}", ob)
     add_object_body(spec, "goal", asset, rgba=[0.2, 0.8, 0.3, 0.35], mocap=True)
+    if contacts == "hacman":
+        _hacman_contacts(spec)
     return spec.compile()
 
 
@@ -186,12 +224,14 @@ class BinScene:
         clutter: tuple[ObjectAsset, ...] = (),
         obstacles: tuple = (),
         force_stop_n: float | None = FORCE_STOP_N,
+        contacts: str = "hydo",
     ):
         self.asset = asset
+        self.contacts = contacts  # CONTACT_MODELS
         self.force_stop_n = force_stop_n  # N; None: the hand pushes up to its actuator limits
         self.clutter = clutter
         self.obstacles = tuple(obstacles)  # static boxes of a task (``sim.tasks.Obstacle``)
-        self.model = build_model(asset, clutter, self.obstacles)
+        self.model = build_model(asset, clutter, self.obstacles, contacts)
         self.data = mujoco.MjData(self.model)
         m = self.model
         self.hand_qadr = np.array([m.jnt_qposadr[m.joint(f"hand_{a}").id] for a in "xyz"])

@@ -18,10 +18,11 @@ def feasible_heuristic(obs: dict) -> tuple[int, np.ndarray]:
     return heuristic_action(obs, np.random.default_rng(0), mask)
 
 
-@pytest.mark.parametrize("goals", ["planar", "6d"])
-def test_check_env(goals):
-    env = gymnasium.make("hydo/Bin-v0", objects="cube", goals=goals).unwrapped
+@pytest.mark.parametrize("goals, contacts", [("planar", "hydo"), ("6d", "hydo"), ("6d", "hacman")])
+def test_check_env(goals, contacts):
+    env = gymnasium.make("hydo/Bin-v0", objects="cube", goals=goals, contacts=contacts).unwrapped
     check_env(env, skip_render_check=True)
+    assert env.scene.contacts == contacts
 
 
 def test_make_kwargs_and_spaces():
@@ -41,6 +42,8 @@ def test_bad_arguments():
         BinEnv(objects="cube", goals="7d")
     with pytest.raises(ValueError, match="clutter"):
         BinEnv(objects="cube", clutter=3)
+    with pytest.raises(ValueError, match="contacts"):
+        BinEnv(objects="cube", contacts="robosuite")
 
 
 def _rollout(seed, n=4):

@@ -327,6 +327,11 @@ def records(tmp_path_factory) -> dict[str, Path]:
             ["--compare", *REC[:4], "--goals", "6d"],
             "--goals planar, this evaluation with --goals 6d",
         ),
+        (
+            "compare",
+            ["--compare", *REC, "--contacts", "hacman"],
+            "--contacts hydo, this evaluation with --contacts hacman",
+        ),
         ("compare", ["heuristic", "--compare", *REC], "give it once"),
         ("cube", ["--compare", *REC], "holds no run on unseen-category"),
     ],
@@ -340,3 +345,36 @@ def test_a_bad_record_is_one_line_and_exit_1(make, cli, message, records, tmp_pa
     assert r.returncode == 1, (r.stdout, r.stderr)
     assert "Traceback" not in r.stderr and message in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_a_record_made_before_contacts_existed_reads_as_the_scenes_own():
+    """Records written before ``--contacts`` existed were played in hydo's contact model."""
+    import gzip
+
+    from hydo_cli.records import load_record
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "table1-6d" / "hacman-s0.json.gz"
+    assert "contacts" not in json.loads(gzip.decompress(path.read_bytes()))
+    assert load_record(str(path))["contacts"] == "hydo"
+
+
+def test_a_run_trained_in_other_contacts_is_evaluated_as_asked_with_a_note(tmp_path):
+    """``hydo eval`` plays in ``--contacts`` (default hydo's); a run trained in another contact model
+    gets a one-line note saying how to match it, and none when it matches."""
+    import shutil
+
+    from models.checkpoint import load_checkpoint, save_checkpoint
+
+    run = tmp_path / "run"
+    shutil.copytree(Path(__file__).resolve().parent / "data" / "old-run-v0", run)
+    ckpt = load_checkpoint(run / "checkpoint.pt")
+    ckpt["config"] = json.dumps({**json.loads(ckpt["config"]), "contacts": "hacman"})
+    save_checkpoint(run / "checkpoint.pt", ckpt)
+    args = ["eval", str(run), "--objects", "cube", "--episodes", "1", "--json"]
+    r = hydo(*args, str(tmp_path / "a.json"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "was trained with contacts hacman" in r.stderr and "--contacts hacman to match" in r.stderr
+    assert json.loads((tmp_path / "a.json").read_text())["contacts"] == "hydo"
+    r = hydo(*args, str(tmp_path / "b.json"), "--contacts", "hacman", cwd=tmp_path)
+    assert r.returncode == 0 and "trained with contacts" not in r.stderr, r.stderr
+    assert json.loads((tmp_path / "b.json").read_text())["contacts"] == "hacman"

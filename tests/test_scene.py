@@ -56,6 +56,42 @@ def test_every_builtin_stable_pose_stays_put():
             assert turn < STABLE_MAX_TURN_RAD, (asset.name, k, np.rad2deg(turn))
 
 
+def test_hacman_contacts_take_hacmans_settings_and_hydo_keeps_its_own():
+    """``contacts="hacman"`` (sim.scene) sets HACMan's bin env's contact settings on the same scene;
+    the default changes nothing."""
+    from sim.scene import (
+        HACMAN_FINGER_FRICTION,
+        HACMAN_OBJECT_DENSITY,
+        HACMAN_OBJECT_FRICTION,
+        OBJECT_DENSITY,
+    )
+
+    asset = load_objects("mug_00")[0]
+    own, hac = BinScene(asset).model, BinScene(asset, contacts="hacman").model
+    for m, cone, noslip in (
+        (own, mujoco.mjtCone.mjCONE_PYRAMIDAL, 0),
+        (hac, mujoco.mjtCone.mjCONE_ELLIPTIC, 20),
+    ):
+        assert m.opt.cone == cone and m.opt.noslip_iterations == noslip
+        assert m.opt.timestep == pytest.approx(0.005)  # the step is hydo's in both
+    assert own.opt.impratio == 1.0 and hac.opt.impratio == 20.0
+    np.testing.assert_allclose(own.geom("hand_fingers").friction, [0.8, 0.005, 0.0001])
+    np.testing.assert_allclose(hac.geom("hand_fingers").friction, HACMAN_FINGER_FRICTION)
+    assert own.geom("hand_palm").contype == 1 and hac.geom("hand_palm").contype == 0
+    assert hac.geom("hand_palm").conaffinity == 0
+    for m, friction, condim in ((own, [0.5, 0.005, 0.0001], 3), (hac, HACMAN_OBJECT_FRICTION, 4)):
+        np.testing.assert_allclose(m.geom("object_geom0").friction, friction)
+        assert m.geom("object_geom0").condim == condim
+        # the bin wins object-bin contacts in HACMan's (priority 1): their friction stays the bin's 0.5
+        assert m.geom("bin_floor").priority == (m is hac) and m.geom("bin_floor").condim == condim
+        np.testing.assert_allclose(m.geom("bin_floor").friction, [0.5, 0.005, 0.0001])
+    # the same shape at 50 kg/m^3 instead of 400; the goal ghost has no mass in either
+    ratio = hac.body("object").mass[0] / own.body("object").mass[0]
+    assert ratio == pytest.approx(HACMAN_OBJECT_DENSITY / OBJECT_DENSITY, rel=1e-6)
+    with pytest.raises(ValueError, match="contacts"):
+        BinScene(asset, contacts="robosuite")
+
+
 def test_primitive_waypoints_geometry():
     p, n, m = np.array([0.0, 0.0, 0.03]), np.array([-1.0, 0, 0]), np.array([1.0, 0.5, -1.0])
     w = primitive_waypoints(p, n, m)

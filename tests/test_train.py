@@ -166,6 +166,17 @@ def test_flip_share_is_refused_for_planar_goals_in_one_line():
     assert "\n" not in str(e.value)
 
 
+def test_contacts_are_a_training_key_checked_in_one_line():
+    from hydo_cli.config import TrainConfig
+    from hydo_cli.errors import HydoError
+
+    assert TrainConfig.parse({}, "run.toml").contacts == "hydo"  # old configs: the scene's own
+    assert TrainConfig.parse({"contacts": "hacman"}, "run.toml").contacts == "hacman"
+    with pytest.raises(HydoError, match=r"run\.toml.*contacts") as e:
+        TrainConfig.parse({"contacts": "robosuite"}, "run.toml")
+    assert "\n" not in str(e.value)
+
+
 def test_an_evaluation_during_training_does_not_splice_episodes(tmp_path):
     """Evaluations run on the training envs. Every pair of stored transitions the replay links as one
     episode (``next_slot``: hindsight goals, n-step returns) must continue it: the same cloud and
