@@ -23,7 +23,8 @@ def make_envs(
 
     ``task`` (``sim.tasks``) replaces objects, goals and clutter by the task's scene; ``task_start``
     is ``fixed`` (evaluation) or ``random`` (training). ``flip_share``: training's mix of 6D goals
-    (``BinEnv``). ``contacts``: the scene's contact model (``sim.scene.CONTACT_MODELS``).
+    (``BinEnv``). ``contacts``: the scene's contact model (``sim.contract.CONTACT_MODELS``, set by
+    ``sim.scene``).
     """
     from sim.contract import DEFAULT_N_BG, DEFAULT_N_OBJ
     from sim.env import BinEnv

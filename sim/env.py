@@ -24,7 +24,7 @@ Arguments (``gymnasium.make("hydo/Bin-v0", ...)``)
     (``mesh`` | ``render``), ``clutter`` (0, 1, 2 or 5 extra objects in the background cloud),
     ``n_obj``, ``n_bg`` (point counts), ``max_steps``, ``goal_symmetry`` (``object`` | ``none``),
     ``flip_share`` (6D, training: the share of episodes whose goal is a flip; None: as drawn, ~half);
-    ``contacts`` (``hydo`` | ``hacman``: the scene's contact model, ``sim.scene.CONTACT_MODELS``);
+    ``contacts`` (``hydo`` | ``hacman``: the scene's contact model, set by ``sim.scene``);
     ``task`` (``sim.tasks``: ``push-line`` |
     ``push-align``, the behaviour-diversity variants; they fix the object, goal and obstacles) and
     ``task_start`` (``fixed``: the task's fixed start pose, for evaluation; ``random``: its training
