@@ -158,15 +158,16 @@ def _add_obstacle_body(spec, name: str, obstacle) -> None:
     )
 
 
-# The training scene's contact models (``sim.contract.CONTACT_MODELS``; ``BinScene(contacts=...)``,
-# ``BinEnv``, ``TrainConfig.contacts``). ``hydo``: this scene's own (the values above and in the asset XMLs). ``hacman``: the contact settings
-#: of HACMan's bin env (HACMan-2023/HACMan ``bin_env`` and its robosuite fork), the simulator the paper's
-#: figures come from: elliptic friction cones, impratio 20 and 20 no-slip iterations; fingertip friction
-#: (3, 0.015, 0.0003); objects at 50 kg/m³ with friction (0.95, 0.3, 0.1) and condim 4 (torsional
-#: friction); the bin's geoms at priority 1 and condim 4 (so object-bin contacts keep the bin's 0.5);
-#: the palm does not collide (robosuite's ``transparent_gripper_base``). Not taken over: its 2 ms step,
-#: solref / solimp, wall planes without a top, and its OSC hand (motion targets relative to where the
-#: hand is): the primitive and its geometry stay ``sim.primitive``'s.
+# The training scene's contact models (``sim.contract.CONTACT_MODELS``: ``BinScene(contacts=...)``,
+# ``BinEnv``, ``TrainConfig.contacts``). ``hydo``: this scene's own (the values above and in the asset
+# XMLs). ``hacman``: the contact settings of HACMan's bin env (HACMan-2023/HACMan ``bin_env`` and its
+# robosuite fork), the simulator the paper's figures come from: elliptic friction cones, impratio 20
+# and 20 no-slip iterations; fingertip friction (3, 0.015, 0.0003); objects at 50 kg/m^3 with friction
+# (0.95, 0.3, 0.1) and condim 4 (torsional friction); the bin's geoms at priority 1 and condim 4 (so
+# object-bin contacts keep the bin's 0.5); the palm does not collide (robosuite's
+# ``transparent_gripper_base``). Not taken over: its 2 ms step, solref / solimp, wall planes without a
+# top, and its OSC hand (motion targets relative to where the hand is): the primitive and its geometry
+# stay ``sim.primitive``'s. The one-step search flips twice as often in it (docs/results.md).
 HACMAN_FINGER_FRICTION = (3.0, 0.015, 0.0003)
 HACMAN_OBJECT_FRICTION = (0.95, 0.3, 0.1)
 HACMAN_OBJECT_DENSITY = 50.0  # kg/m^3
