@@ -115,10 +115,9 @@ class TrainConfig:
     None draws goals as evaluation does (about half are flips). Evaluations during training and
     ``hydo eval`` always draw as drawn."""
     contacts: ContactModel = "hydo"
-    """The training scene's contact model (``sim.scene``): "hydo", the scene's own, or "hacman", the
-    contact settings of HACMan's bin env (the paper's simulator: grippier fingertips, torsional
-    friction, light objects, elliptic cones with no-slip iterations, no palm collisions). Evaluate such
-    a run with ``hydo eval --contacts hacman``."""
+    """The training scene's contact model: "hydo", the scene's own, or "hacman", the contact settings
+    of HACMan's bin env (``sim.scene`` lists them). Evaluate such a run with ``hydo eval --contacts
+    hacman``."""
     n_step: Count = 1
     """Primitives per TD target: the critic learns from the return of up to ``n_step`` primitives of
     an episode and bootstraps after them (``models.replay.ReplayBuffer.n_step_chain``)."""
