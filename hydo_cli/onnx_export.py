@@ -80,11 +80,13 @@ def _export_one(torch, module, args, names_in, names_out, path, dynamic):
 
 
 def _real_observations(cfg, n: int, seed: int):
-    """``n`` observations from the training env configuration (goals, objects)."""
+    """``n`` observations from the training env configuration (goals, objects, contacts)."""
     from hydo_cli.envs import make_envs
     from sim.baselines import random_action
 
-    env = make_envs(cfg.objects, cfg.goals, cfg.clutter, "mesh", 1, cfg.n_obj, cfg.n_bg)[0]
+    env = make_envs(
+        cfg.objects, cfg.goals, cfg.clutter, "mesh", 1, cfg.n_obj, cfg.n_bg, contacts=cfg.contacts
+    )[0]
     rng = np.random.default_rng(seed)
     obs, _ = env.reset(seed=seed)
     out = []
@@ -229,6 +231,7 @@ def export_agent(agent, cfg, command: str, out: Path, seed: int = 0, n_checks: i
             "stochastic": bool(agent.eval_stochastic),
             "goals": cfg.goals,
             "objects": cfg.objects,
+            "contacts": cfg.contacts,
             "training_command": command,
             "agent_config": schedule,
         }

@@ -21,13 +21,14 @@ from pathlib import Path
 
 from hydo_cli.errors import HydoError
 from sim.atomic import atomic_write
+from sim.contract import CONTACT_DEFAULT
 
 RECORD_SUFFIXES = (".json", ".json.gz")
 
 #: report keys that fix the episodes and how they were played: a record must match on each
 SAME_EPISODES = ("goals", "episodes", "seed", "clutter", "obs", "feasible_only", "contacts")
 #: the value of a key that records made before it existed were made with
-RECORD_DEFAULTS = {"contacts": "hydo"}
+RECORD_DEFAULTS = {"contacts": CONTACT_DEFAULT}
 FLAG = {"feasible_only": "feasible-only"}
 #: what the aggregate and the tables read of a run
 RUN_KEYS = (

@@ -24,7 +24,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, Field, ValidationError, model_validator
 
 from models.choices import ALGOS
-from sim.contract import FEATURE_DIM, GOAL_MODES
+from sim.contract import CONTACT_MODELS, FEATURE_DIM, GOAL_MODES
 from sim.schema import STRICT, one_line
 
 FORMAT = "hydo-onnx/1"
@@ -67,7 +67,7 @@ class InterfaceError(ValueError):
 
 
 #: Keys an export writes beside ``MANIFEST_KEYS`` (records, cross-checked where they say the same).
-OPTIONAL_KEYS = ("paper_name", "objects", "encoder_inputs", "agent_config", "verification")
+OPTIONAL_KEYS = ("paper_name", "objects", "contacts", "encoder_inputs", "agent_config", "verification")
 #: ``metadata_props`` the exporter stores in each graph (JSON values): what a lone .onnx says it is.
 GRAPH_METADATA = ("format", "obs_contract_version", "algo", "n_obj", "n_bg", "denoise_steps", "q_reduction")
 #: Schedule keys (``noise_schedule``) and the AgentConfig fields they copy.
@@ -139,6 +139,9 @@ class Manifest(BaseModel):
     sha256: dict[Literal[FILES], _Hex64]  # type: ignore[valid-type]
     paper_name: str | None = None
     objects: Annotated[str, Field(min_length=1)] | None = None
+    # The scene's contact model it was trained in; absent in exports made before there was a choice,
+    # which were all trained in ``sim.contract.CONTACT_DEFAULT``.
+    contacts: Literal[CONTACT_MODELS] | None = None  # type: ignore[valid-type]
     encoder_inputs: list[str] | None = None  # absent in exports before encoder normals existed
     agent_config: dict[str, Any] | None = None
     verification: dict[str, Any] | None = None

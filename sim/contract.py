@@ -59,6 +59,8 @@ class Contacts(str, Enum):
 GOAL_MODES = tuple(g.value for g in Goals)
 OBS_SOURCES = tuple(o.value for o in ObsSource)
 CONTACT_MODELS = tuple(c.value for c in Contacts)
+#: the scene's own contact model: what runs, records and exports made before there was a choice used
+CONTACT_DEFAULT = Contacts.hydo.value
 
 #: Default point counts. Chosen by measurement (bench/learner.py): every gradient update is linear in
 #: N, and 128 + 128 keeps the planar task learnable while an update stays cheap on 2 CPU cores.

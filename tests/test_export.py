@@ -50,6 +50,26 @@ def _export_with_parity(path, **agent_kw) -> dict:
     return json.loads((path / "manifest.json").read_text())
 
 
+def test_the_manifest_names_the_contacts_a_model_was_trained_in(tmp_path):
+    """Export records the run's contact model and eval reads it back (its note says how to match);
+    a manifest from before the choice reads as the scene's own, an unknown model is refused."""
+    from hydo_cli.policies import load_onnx_policy
+    from robot.onnx_policy import read_manifest
+
+    cfg = TrainConfig(algo="hydo-cm", objects="cube", n_obj=32, n_bg=16, agent=TINY, contacts="hacman")
+    out = tmp_path / "model"
+    export_agent(HybridAgent(agent_config(cfg)), cfg, "pytest", out, n_checks=8)
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["contacts"] == "hacman"
+    assert load_onnx_policy(out, seed=0).contacts == "hacman"
+    del manifest["contacts"]
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    assert load_onnx_policy(out, seed=0).contacts == "hydo"
+    (out / "manifest.json").write_text(json.dumps({**manifest, "contacts": "rubber"}))
+    with pytest.raises(ModelLoadError, match="contacts"):
+        read_manifest(out)
+
+
 def test_critic_motion_directions_export_with_parity(tmp_path):
     """The bilinear motion directions of the Q heads export with the same interface and tolerance."""
     _export_with_parity(tmp_path / "model", critic_motion_dirs=4)
