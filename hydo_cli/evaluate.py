@@ -39,6 +39,7 @@ from hydo_cli.records import is_record, load_record, recorded_runs, write_report
 from hydo_cli.report import COMPARE_SPLITS, aggregate, run_summary
 from hydo_cli.tables import markdown_report, print_report
 from sim.atomic import atomic_write_text
+from sim.contract import CONTACT_MODELS, GOAL_MODES
 
 HELP = """Evaluate policies: success per run, IQM [95% CI] across runs, the paper's Table I (--compare).
 
@@ -47,7 +48,8 @@ or a recorded evaluation, FILE.json[.gz] written by `hydo eval --json` on the sa
 runs join this one without being rerun (a table whose runs were trained on different machines).
 Give several (e.g. the seeds of a method) to aggregate them. Every run faces the same episodes. The
 policy acts as in training's evaluation (its `policy` column says whether it samples). Goals are
-the mode the runs were trained on (a model's manifest, a run's config) unless --goals says otherwise.
+the mode the runs were trained on (a model's manifest, a run's config) unless --goals says otherwise;
+so is the scene's contact model (--contacts).
 
 Per run: success rate, mean primitives to success, per-object success and failure reasons: `left bin`
 and `timeout` (how failed episodes ended) and `refused` (failed episodes with at least one refused
@@ -88,19 +90,23 @@ Examples:
 console = Console(stderr=True)
 
 
-def resolve_goals(goals: Goals | None, trained_on: list[tuple[str, str | None]], task: bool) -> str:
-    """The goal mode to evaluate on: ``--goals`` if given, else the one the learned targets were
-    trained on (a 6D model is not silently scored on planar goals) or a record was evaluated on;
-    planar for baselines alone. ``trained_on``: ``(target, goal mode or None)`` per target."""
-    if goals is not None:
-        return goals.value
-    trained = {t: g for t, g in trained_on if g is not None}
-    if task or not trained:
-        return Goals.planar.value
+def resolve_trained(
+    option: str, given: str | None, trained_on: list[tuple[str, str | None]], choices: tuple[str, ...]
+) -> str:
+    """What the episodes are played in, for a setting a run is trained in (``--goals``, ``--contacts``):
+    ``given`` if the option was given, else the one the learned targets were trained in or a record was
+    evaluated in (a 6D model is not silently scored on planar goals, nor a run trained in HACMan's
+    contacts in hydo's); ``choices[0]``, the default, for baselines alone. ``trained_on``: ``(target,
+    value or None)`` per target; targets that differ need the option."""
+    if given is not None:
+        return given
+    trained = {t: v for t, v in trained_on if v is not None}
+    if not trained:
+        return choices[0]
     if len(set(trained.values())) > 1:
-        listing = ", ".join(f"{t} ({g})" for t, g in trained.items())
+        listing = ", ".join(f"{t} ({v})" for t, v in trained.items())
         raise HydoError(
-            f"the runs were trained on different goal modes: {listing}; give --goals planar or 6d"
+            f"the runs were trained with different --{option}: {listing}; give --{option} {'|'.join(choices)}"
         )
     return next(iter(trained.values()))
 
@@ -131,13 +137,13 @@ def evaluate(
     seed: SeedOpt = 0,
     obs: Annotated[ObsSource, typer.Option("--obs", help="Observation source.")] = ObsSource.mesh,
     contacts: Annotated[
-        Contacts,
+        Contacts | None,
         typer.Option(
             "--contacts",
-            help="The scene's contact model: hydo (its own) or hacman (HACMan's bin env's settings; "
-            'for runs trained with contacts = "hacman").',
+            help="The scene's contact model: hydo (its own) or hacman (HACMan's bin env's settings). "
+            "Default: the one the runs were trained in (hydo for baselines alone).",
         ),
-    ] = Contacts.hydo,
+    ] = None,
     compare: Annotated[
         bool,
         typer.Option(
@@ -245,16 +251,25 @@ def evaluate(
         t: load_policy(t, seed=seed, feasible_only=feasible_only, weights=w, chain_noise=cn) for t in live
     }
     trained = [(t, lp.goals) for t, lp in loaded.items()] + [(t, r["goals"]) for t, r in records.items()]
-    goal_mode = resolve_goals(goals, trained, task_def is not None)
+    given = None if goals is None else goals.value
+    if task_def is not None and given is None:
+        given = Goals.planar.value  # a task's episodes are planar (sim.tasks)
+    goal_mode = resolve_trained("goals", given, trained, GOAL_MODES)
+    trained = [(t, lp.contacts) for t, lp in loaded.items()] + [
+        (t, r["contacts"]) for t, r in records.items()
+    ]
+    contact_model = resolve_trained(
+        "contacts", None if contacts is None else contacts.value, trained, CONTACT_MODELS
+    )
     for t, lp in loaded.items():  # a run plays in another contact model only when asked to
-        if lp.contacts not in (None, contacts.value):
+        if lp.contacts not in (None, contact_model):
             console.print(
                 f"[yellow]note:[/] {t} was trained with contacts {lp.contacts}; this evaluation plays in "
-                f"{contacts.value}'s (--contacts {lp.contacts} to match)",
+                f"{contact_model}'s (--contacts {lp.contacts} to match)",
                 soft_wrap=True,  # one line, whatever the terminal's width
             )
     settings = {"goals": goal_mode, "episodes": episodes, "seed": seed, "clutter": clutter}
-    settings |= {"obs": obs.value, "feasible_only": feasible_only, "contacts": contacts.value}
+    settings |= {"obs": obs.value, "feasible_only": feasible_only, "contacts": contact_model}
     recorded = {t: recorded_runs(t, r, settings, splits) for t, r in records.items()}
     seen: dict[tuple, str] = {}  # (target, split) → where it came from: a run pooled twice is refused
     for t in live:
@@ -308,7 +323,7 @@ def evaluate(
                         lp.n_bg,
                         render=video is not None,
                         task=task.value if task else None,
-                        contacts=contacts.value,
+                        contacts=contact_model,
                     )
                 bar = progress.add_task(f"{target} ({split})", total=episodes)
                 t0 = time.perf_counter()
@@ -364,7 +379,7 @@ def evaluate(
         "goals": goal_mode,
         "clutter": clutter,
         "obs": obs.value,
-        "contacts": contacts.value,
+        "contacts": contact_model,
         "episodes": episodes,
         "seed": seed,
         # one method: the IQM across its runs; several: None (per method under "aggregate")

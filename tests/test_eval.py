@@ -222,7 +222,7 @@ def test_goals_default_to_the_mode_the_runs_were_trained_on(tmp_path):
     assert all(tilt < 1 for _, tilt in planar_eps) and any(tilt > 30 for _, tilt in default_eps)  # degrees
     assert episodes("heuristic")[0] == "planar" and episodes(planar)[0] == "planar"
     mixed = hydo("eval", six_d, planar, "--objects", "wedge_00", "--episodes", "1")
-    assert mixed.returncode == 1 and "different goal modes" in mixed.stderr, mixed.stderr
+    assert mixed.returncode == 1 and "different --goals" in mixed.stderr, mixed.stderr
     assert len(mixed.stderr.strip().splitlines()) == 1 and "Traceback" not in mixed.stderr
 
 
@@ -358,23 +358,30 @@ def test_a_record_made_before_contacts_existed_reads_as_the_scenes_own():
     assert load_record(str(path))["contacts"] == "hydo"
 
 
-def test_a_run_trained_in_other_contacts_is_evaluated_as_asked_with_a_note(tmp_path):
-    """``hydo eval`` plays in ``--contacts`` (default hydo's); a run trained in another contact model
-    gets a one-line note saying how to match it, and none when it matches."""
+def test_eval_plays_in_the_contacts_a_run_was_trained_in_unless_told(tmp_path):
+    """``hydo eval`` plays in the contact model the runs were trained in (hydo's for baselines alone);
+    ``--contacts`` overrides it with a one-line note saying how to match, and runs trained in different
+    models need it."""
     import shutil
 
     from models.checkpoint import load_checkpoint, save_checkpoint
 
-    run = tmp_path / "run"
-    shutil.copytree(Path(__file__).resolve().parent / "data" / "old-run-v0", run)
+    data = Path(__file__).resolve().parent / "data" / "old-run-v0"
+    run, other = tmp_path / "run", tmp_path / "other"
+    shutil.copytree(data, run)
+    shutil.copytree(data, other)  # made before contacts existed: the scene's own
     ckpt = load_checkpoint(run / "checkpoint.pt")
     ckpt["config"] = json.dumps({**json.loads(ckpt["config"]), "contacts": "hacman"})
     save_checkpoint(run / "checkpoint.pt", ckpt)
     args = ["eval", str(run), "--objects", "cube", "--episodes", "1", "--json"]
     r = hydo(*args, str(tmp_path / "a.json"), cwd=tmp_path)
+    assert r.returncode == 0 and "trained with contacts" not in r.stderr, r.stderr
+    assert json.loads((tmp_path / "a.json").read_text())["contacts"] == "hacman"
+    r = hydo(*args, str(tmp_path / "b.json"), "--contacts", "hydo", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "was trained with contacts hacman" in r.stderr and "--contacts hacman to match" in r.stderr
-    assert json.loads((tmp_path / "a.json").read_text())["contacts"] == "hydo"
-    r = hydo(*args, str(tmp_path / "b.json"), "--contacts", "hacman", cwd=tmp_path)
-    assert r.returncode == 0 and "trained with contacts" not in r.stderr, r.stderr
-    assert json.loads((tmp_path / "b.json").read_text())["contacts"] == "hacman"
+    assert json.loads((tmp_path / "b.json").read_text())["contacts"] == "hydo"
+    r = hydo("eval", str(run), str(other), "--objects", "cube", "--episodes", "1", cwd=tmp_path)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    assert "trained with different --contacts" in r.stderr and "(hacman)" in r.stderr and "(hydo)" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
