@@ -50,6 +50,7 @@ from hydo_cli.policies import load_policy  # noqa: E402
 from hydo_cli.report import goal_kind_breakdown  # noqa: E402
 from hydo_cli.rollout import run_episodes, summarize  # noqa: E402
 from sim.atomic import atomic_write_text  # noqa: E402
+from sim.contract import CONTACT_DEFAULT, CONTACT_MODELS  # noqa: E402
 
 N_ENVS = 8  # envs stepped in lock-step, one batched decision per step (as hydo eval)
 
@@ -120,9 +121,11 @@ def write_meshes(folder: Path, per_kind: int = 6, seed: int = 0) -> list[Path]:
     return paths
 
 
-def evaluate(model: str, objects: str, goals: str, episodes: int, seed: int) -> dict:
+def evaluate(model: str, objects: str, goals: str, episodes: int, seed: int, contacts: str | None) -> dict:
+    """One policy on one object set; ``contacts`` None plays in the model's own (as ``hydo eval``)."""
     lp = load_policy(model, seed=seed)
-    envs = make_envs(objects, goals, 0, "mesh", N_ENVS, lp.n_obj, lp.n_bg)
+    contacts = contacts or lp.contacts or CONTACT_DEFAULT
+    envs = make_envs(objects, goals, 0, "mesh", N_ENVS, lp.n_obj, lp.n_bg, contacts=contacts)
     t0 = time.perf_counter()
     eps = run_episodes(envs, lp.policy, episodes, seed=seed)
     for env in envs:
@@ -136,6 +139,7 @@ def evaluate(model: str, objects: str, goals: str, episodes: int, seed: int) -> 
         **summarize(eps),
         **goal_kind_breakdown(eps),
         "per_object": per_object,
+        "contacts": contacts,
         "wall_s": time.perf_counter() - t0,
     }
 
@@ -146,6 +150,9 @@ def main() -> None:
     ap.add_argument("--goals", choices=("planar", "6d"), default="6d")
     ap.add_argument("--episodes", type=int, default=500)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument(
+        "--contacts", choices=CONTACT_MODELS, help="the scene's contact model (default: the model's own)"
+    )
     ap.add_argument("--per-kind", type=int, default=6, help="generated meshes per kind (blob, rock, multi)")
     ap.add_argument("--mesh-dir", type=Path, default=Path("runs/outside-meshes"))
     ap.add_argument("--json", type=Path)
@@ -155,7 +162,7 @@ def main() -> None:
     print(f"{len(paths)} meshes in {args.mesh_dir}", flush=True)
     results = {}
     for name, objects in (("outside", str(args.mesh_dir)), ("unseen", "unseen")):
-        r = results[name] = evaluate(args.model, objects, args.goals, args.episodes, args.seed)
+        r = results[name] = evaluate(args.model, objects, args.goals, args.episodes, args.seed, args.contacts)
         mf = "  ".join(
             f"{k} {r[k]['success_rate']:.1%} of {r[k]['episodes']}" for k in ("move", "flip") if k in r
         )

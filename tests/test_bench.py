@@ -74,6 +74,7 @@ CASES = {
             len(d["meta"]["meshes"]) == 9  # one blob, rock and multi-part body, six household shapes
             and sum(n for _, n in d["outside"]["per_object"].values()) == 2
             and d["gap"] == pytest.approx(d["unseen"]["success_rate"] - d["outside"]["success_rate"])
+            and d["outside"]["contacts"] == d["unseen"]["contacts"] == "hydo"  # the model's own
         ),
     ),
     "push_forces.py": (
