@@ -46,7 +46,7 @@ from rich.table import Table  # noqa: E402
 
 from sim.atomic import atomic_write_text  # noqa: E402
 from sim.baselines import heuristic_action  # noqa: E402
-from sim.contract import CONTACT_MODELS  # noqa: E402
+from sim.contract import CONTACT_DEFAULT, CONTACT_MODELS  # noqa: E402
 from sim.env import BinEnv  # noqa: E402
 from sim.goals import FLIP_TILT_DEG  # noqa: E402
 
@@ -144,7 +144,11 @@ def main() -> None:
     ap.add_argument("--objects", default="train")
     ap.add_argument("--goals", default="planar", choices=["planar", "6d"])
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--contacts", default="hydo", choices=CONTACT_MODELS, help="the scene's contact model")
+    ap.add_argument(
+        "--contacts",
+        choices=CONTACT_MODELS,
+        help="the scene's contact model (default: the run's own with --run, else hydo's)",
+    )
     ap.add_argument("--json", type=Path, help="write results to this JSON file")
     args = ap.parse_args()
     if args.run is None:
@@ -152,6 +156,7 @@ def main() -> None:
         if min(counts) < N_HEURISTIC:
             ap.error(f"--candidates must each be ≥ {N_HEURISTIC}")
         n_obj, n_bg = 128, 128
+        args.contacts = args.contacts or CONTACT_DEFAULT
     else:
         import torch
 
@@ -161,6 +166,7 @@ def main() -> None:
         agent, cfg, _ = load_agent(args.run)
         counts = [int(c) for c in args.top.split(",")]
         n_obj, n_bg = cfg.n_obj, cfg.n_bg
+        args.contacts = args.contacts or cfg.contacts
 
     env = BinEnv(objects=args.objects, goals=args.goals, n_obj=n_obj, n_bg=n_bg, contacts=args.contacts)
     results = {}

@@ -23,7 +23,10 @@ CASES = {
     ),
     "learner.py": (["--algos", "hydo-cm", "--seconds", "1", "--threads", "1"], lambda d: d),
     "inference.py": (["--runs", "3"], lambda d: d["ort_ms_median"] > 0),
-    "lookahead.py": (["--candidates", "4", "--episodes", "1"], lambda d: "C=4" in d),
+    "lookahead.py": (
+        ["--candidates", "4", "--episodes", "1"],
+        lambda d: "C=4" in d and d["meta"]["contacts"] == "hydo",
+    ),
     "sim.py": (["--seconds", "1"], lambda d: d["mesh_steps_per_s"] > 0),
     "verdict.py": (
         [str(TWIN_SESSION)],
