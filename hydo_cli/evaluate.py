@@ -39,7 +39,7 @@ from hydo_cli.records import is_record, load_record, recorded_runs, write_report
 from hydo_cli.report import COMPARE_SPLITS, aggregate, run_summary
 from hydo_cli.tables import markdown_report, print_report
 from sim.atomic import atomic_write_text
-from sim.contract import CONTACT_MODELS, GOAL_MODES
+from sim.contract import CONTACT_DEFAULT, CONTACT_MODELS, GOAL_MODES
 
 HELP = """Evaluate policies: success per run, IQM [95% CI] across runs, the paper's Table I (--compare).
 
@@ -91,18 +91,22 @@ console = Console(stderr=True)
 
 
 def resolve_trained(
-    option: str, given: str | None, trained_on: list[tuple[str, str | None]], choices: tuple[str, ...]
+    option: str,
+    given: str | None,
+    trained_on: list[tuple[str, str | None]],
+    default: str,
+    choices: tuple[str, ...],
 ) -> str:
     """What the episodes are played in, for a setting a run is trained in (``--goals``, ``--contacts``):
     ``given`` if the option was given, else the one the learned targets were trained in or a record was
     evaluated in (a 6D model is not silently scored on planar goals, nor a run trained in HACMan's
-    contacts in hydo's); ``choices[0]``, the default, for baselines alone. ``trained_on``: ``(target,
+    contacts in hydo's); ``default`` for baselines alone. ``trained_on``: ``(target,
     value or None)`` per target; targets that differ need the option."""
     if given is not None:
         return given
     trained = {t: v for t, v in trained_on if v is not None}
     if not trained:
-        return choices[0]
+        return default
     if len(set(trained.values())) > 1:
         listing = ", ".join(f"{t} ({v})" for t, v in trained.items())
         raise HydoError(
@@ -254,12 +258,12 @@ def evaluate(
     given = None if goals is None else goals.value
     if task_def is not None and given is None:
         given = Goals.planar.value  # a task's episodes are planar (sim.tasks)
-    goal_mode = resolve_trained("goals", given, trained, GOAL_MODES)
+    goal_mode = resolve_trained("goals", given, trained, Goals.planar.value, GOAL_MODES)
     trained = [(t, lp.contacts) for t, lp in loaded.items()] + [
         (t, r["contacts"]) for t, r in records.items()
     ]
     contact_model = resolve_trained(
-        "contacts", None if contacts is None else contacts.value, trained, CONTACT_MODELS
+        "contacts", None if contacts is None else contacts.value, trained, CONTACT_DEFAULT, CONTACT_MODELS
     )
     for t, lp in loaded.items():  # a run plays in another contact model only when asked to
         if lp.contacts not in (None, contact_model):
