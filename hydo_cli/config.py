@@ -116,8 +116,8 @@ class TrainConfig:
     ``hydo eval`` always draw as drawn."""
     contacts: ContactModel = "hydo"
     """The training scene's contact model: "hydo", the scene's own, or "hacman", the contact settings
-    of HACMan's bin env (``sim.scene`` lists them). Evaluate such a run with ``hydo eval --contacts
-    hacman``."""
+    of HACMan's bin env (``sim.scene`` lists them). ``hydo eval`` plays in the one a run was trained
+    in unless ``--contacts`` says otherwise."""
     n_step: Count = 1
     """Primitives per TD target: the critic learns from the return of up to ``n_step`` primitives of
     an episode and bootstraps after them (``models.replay.ReplayBuffer.n_step_chain``)."""
