@@ -69,7 +69,7 @@ from robot.twin_metrics import (
     registration_error,
     true_distance,
 )
-from sim.contract import MAX_PRIMITIVES, SUCCESS_THRESHOLD_M
+from sim.contract import CONTACT_DEFAULT, MAX_PRIMITIVES, SUCCESS_THRESHOLD_M
 from sim.goals import episode_seed
 from sim.objects import load_user_mesh
 from sim.observe import bin_background_points, camera_visible_surface
@@ -235,6 +235,16 @@ class Deployment:
                     "registration: views (a 6D goal that shows another face registers to the object's "
                     "mesh: --object-mesh FILE)"
                 )
+        contacts = policy.manifest.get("contacts") or CONTACT_DEFAULT
+        if contacts != CONTACT_DEFAULT and printer is not None:
+            # The twin stands for the cell: its object keeps the scene's own physics whatever the
+            # policy was trained in, as a real object keeps its own (docs/results.md, HACMan's contacts).
+            where = (
+                "the twin's object keeps the scene's own"
+                if cfg.robot == "sim"
+                else "the cell's objects have their own"
+            )
+            printer(f"contacts: trained in the {contacts} contact model (sim/scene.py); {where} physics")
         if cfg.registration == "model" and (cfg.robot != "sim" or cfg.replay is not None):
             if cfg.object_mesh is None:
                 raise InputError(

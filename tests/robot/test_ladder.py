@@ -5,6 +5,7 @@ and a deploy verdict that never counts an ambiguous registration as a success.""
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -225,6 +226,39 @@ def test_a_6d_policy_on_a_cell_without_a_mesh_is_told_in_one_line(tiny_model, ti
             Deployment.prepare(DeployConfig(robot="panda", model=model), printer=lines.append)
         assert len(lines) == notes
         assert all(line.startswith("registration: views") and "--object-mesh" in line for line in lines)
+
+
+def test_a_policy_trained_in_another_contact_model_is_told_in_one_line(tiny_model, tmp_path):
+    """A manifest whose ``contacts`` is not the scene's own (HACMan's, say) gets one note before any
+    device opens, on the twin and on a cell: the object keeps its own physics. The scene's own, or
+    a manifest from before the key, gets none."""
+    hacman = tmp_path / "hacman"
+    shutil.copytree(tiny_model, hacman)
+    manifest = json.loads((hacman / "manifest.json").read_text())
+    manifest["contacts"] = "hacman"
+    (hacman / "manifest.json").write_text(json.dumps(manifest))
+    older = tmp_path / "older"
+    shutil.copytree(tiny_model, older)
+    del manifest["contacts"]
+    (older / "manifest.json").write_text(json.dumps(manifest))
+    for model, robot, want in (
+        (hacman, "sim", "the twin's object keeps"),
+        (hacman, "panda", "the cell's objects have"),
+        (tiny_model, "panda", None),
+        (older, "panda", None),
+    ):
+        lines: list[str] = []
+        cfg = DeployConfig(robot=robot, model=model, log_dir=tmp_path / "logs" / f"{model.name}-{robot}")
+        if robot == "sim":
+            Deployment.prepare(cfg, printer=lines.append)
+        else:  # no goal: refused after the notes, before any device would open
+            with pytest.raises(RegistrationError, match="needs a goal"):
+                Deployment.prepare(cfg, printer=lines.append)
+        notes = [line for line in lines if line.startswith("contacts:")]
+        if want is None:
+            assert notes == [], (model, lines)
+        else:
+            assert len(notes) == 1 and "hacman" in notes[0] and want in notes[0], lines
 
 
 @pytest.mark.parametrize("observe", ["model", "cloud"])
