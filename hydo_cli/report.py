@@ -22,6 +22,9 @@ SPLIT_TITLES = {
 #: A flip that tilts the up direction this much or more turns the object over (a box upside down: two
 #: tips, or one push that rolls it); below it, a flip lays the object on a side (one tip).
 FLIP_OVER_DEG = 120.0
+#: Edges (degrees, up to symmetry) of the JSON's ``by_tilt`` bands: moves; onto a side; 100-150°,
+#: mostly cones and the bowl stood up or laid down; upside down (docs/results.md's "by goal tilt").
+TILT_BAND_EDGES_DEG = (0.0, FLIP_TILT_DEG, 100.0, 150.0, 180.0)
 
 #: The paper's method names (design.md §1), in Table I's row order; baselines after them.
 METHOD_NAMES = {
@@ -74,6 +77,7 @@ def run_summary(results: Sequence, task=None) -> dict:
             for k, v in sorted(per_object.items())
         },
         "by_goal": goal_kind_breakdown(results),
+        "by_tilt": tilt_bands(results),
     }
     if task is not None:
         from sim.tasks import behaviour_entropy
@@ -93,6 +97,23 @@ def _flip_share(results: Sequence, obj: str) -> dict:
     """``flip_episodes`` and ``flip_success_rate`` of one object's episodes (empty without flips)."""
     flips = [r.success for r in results if r.object == obj and r.goal_tilt_deg >= FLIP_TILT_DEG]
     return {"flip_episodes": len(flips), "flip_success_rate": float(np.mean(flips))} if flips else {}
+
+
+def tilt_bands(results: Sequence) -> dict[str, dict]:
+    """Successes and episodes by the goal's tilt (``goal_tilt_deg``), in the bands between
+    ``TILT_BAND_EDGES_DEG`` (keys ``"0-30"``, ``"30-100"``, ...; the last band includes 180°). Every
+    band has a row, empty or not, so tables of runs line up."""
+    edges = TILT_BAND_EDGES_DEG
+    tilt = np.array([r.goal_tilt_deg for r in results], dtype=float)
+    success = np.array([r.success for r in results], dtype=bool)
+    band = np.clip(np.searchsorted(edges, tilt, side="right") - 1, 0, len(edges) - 2)
+    return {
+        f"{edges[b]:g}-{edges[b + 1]:g}": {
+            "episodes": int((band == b).sum()),
+            "successes": int(success[band == b].sum()),
+        }
+        for b in range(len(edges) - 1)
+    }
 
 
 def goal_kind_breakdown(results: Sequence) -> dict[str, dict]:

@@ -9,7 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 from hydo_cli.main import app
-from hydo_cli.report import aggregate, failure_counts, goal_kind_breakdown
+from hydo_cli.report import aggregate, failure_counts, goal_kind_breakdown, tilt_bands
 from hydo_cli.rollout import EpisodeResult
 from hydo_cli.tables import compare_rows
 
@@ -74,6 +74,15 @@ def test_goal_kinds_split_moves_from_flips_at_30_degrees():
     assert kinds["move"]["failed_wrong_face"] == 0.0  # the failed move ended on its own face
     assert goal_kind_breakdown(results[:1])["move"]["failed_wrong_face"] is None  # no failures
     assert set(goal_kind_breakdown(results[:1])) == {"move"}  # planar goals: no flip row
+    # the same episodes by the goal's tilt band: a band's lower edge belongs to it, 180 to the last
+    results += [tilted(True, 30.0, 0.01), tilted(True, 100.0, 0.01), tilted(False, 150.0, 0.09)]
+    assert tilt_bands(results) == {
+        "0-30": {"episodes": 2, "successes": 1},
+        "30-100": {"episodes": 3, "successes": 2},
+        "100-150": {"episodes": 1, "successes": 1},
+        "150-180": {"episodes": 2, "successes": 0},
+    }
+    assert tilt_bands(results[:1])["100-150"] == {"episodes": 0, "successes": 0}  # every band has a row
 
 
 def test_multi_target_eval_writes_json_and_markdown(tmp_path):
