@@ -19,7 +19,7 @@ import numpy as np
 from hydo_cli.config import CHECKPOINT_FORMAT, TrainConfig
 from hydo_cli.errors import HydoError
 from hydo_cli.rollout import Policy, baseline_policy
-from sim.contract import CONTACT_DEFAULT
+from robot.onnx_interface import manifest_contacts
 from sim.primitive import feasibility_mask
 
 if TYPE_CHECKING:  # torch is imported only where a run or checkpoint is loaded
@@ -103,7 +103,7 @@ def load_onnx_policy(folder: Path, seed: int, feasible_only: bool = True) -> Loa
         f"{model.manifest['algo']} (onnx {folder})",
         str(model.manifest["algo"]),
         str(model.manifest["goals"]),
-        str(model.manifest.get("contacts") or CONTACT_DEFAULT),
+        manifest_contacts(model.manifest),
     )
 
 

@@ -55,6 +55,7 @@ from robot.errors import (
 )
 from robot.executor import Outcome
 from robot.model_registration import ModelRegistration, ObjectModel, bin_frame_views
+from robot.onnx_interface import manifest_contacts
 from robot.onnx_policy import OnnxPolicy
 from robot.perception import Background, Segmented, capture_background, observation, segment
 from robot.recovery import handle_failure
@@ -235,7 +236,7 @@ class Deployment:
                     "registration: views (a 6D goal that shows another face registers to the object's "
                     "mesh: --object-mesh FILE)"
                 )
-        contacts = policy.manifest.get("contacts") or CONTACT_DEFAULT
+        contacts = manifest_contacts(policy.manifest)
         if contacts != CONTACT_DEFAULT and printer is not None:
             # The twin stands for the cell: its object keeps the scene's own physics whatever the
             # policy was trained in, as a real object keeps its own (docs/results.md, HACMan's contacts).

@@ -24,7 +24,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, Field, ValidationError, model_validator
 
 from models.choices import ALGOS
-from sim.contract import CONTACT_MODELS, FEATURE_DIM, GOAL_MODES
+from sim.contract import CONTACT_DEFAULT, CONTACT_MODELS, FEATURE_DIM, GOAL_MODES
 from sim.schema import STRICT, one_line
 
 FORMAT = "hydo-onnx/1"
@@ -200,6 +200,12 @@ class Manifest(BaseModel):
                         f"`encoder_inputs` {self.encoder_inputs} disagrees with `agent_config.encoder_normals` {normals}"
                     )
         return self
+
+
+def manifest_contacts(manifest: dict) -> str:
+    """The contact model a checked manifest's policy was trained in (``CONTACT_MODELS``); exports made
+    before the key existed were all trained in ``CONTACT_DEFAULT``."""
+    return str(manifest.get("contacts") or CONTACT_DEFAULT)
 
 
 def check_manifest(manifest, source: str) -> None:
