@@ -20,10 +20,17 @@ off (``eval_every = 0``) so that both runs spend their time on the loop alone. P
 "meta"}`` where each run has ``env_steps_per_hour``, ``updates_per_hour`` and
 ``updates_per_env_step`` (the update-to-data ratio, a setting: equal in both).
 
+``--config FILE`` takes this tree's layouts' settings from a training config, as ``hydo train --config
+FILE`` would: every key but the ones the bench sets itself (run length, evaluation, checkpoints,
+logging, and the goal mode and object set, which stay ``--goals`` / ``--objects`` so that a baseline
+commit that lacks the config's object set still runs the same ones). The baseline keeps its own
+defaults: that is "the current main's loop".
+
 Run it on an otherwise idle machine::
 
     python bench/trainer.py --seconds 180 --json out/trainer.json
     python bench/trainer.py --goals planar --seconds 120
+    python bench/trainer.py --baseline a4909d9 --config configs/6d-train.toml --seconds 100
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,17 +63,75 @@ LAYOUTS = {
 RATES = ("env_steps_per_hour", "updates_per_hour", "sample_gradients_per_hour")
 
 
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)  # a TOML basic string for the plain names configs hold
+    raise SystemExit(f"bench/trainer.py: cannot pass on a setting of type {type(v).__name__}")
+
+
+def parse_toml(text: str, where: str) -> dict:
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SystemExit(f"bench/trainer.py: {where} is not valid TOML: {e}") from None
+
+
+def merge(*layers: dict) -> dict:
+    """Later layers win, key by key, tables (``[agent]``) merged key by key too."""
+    out: dict = {}
+    for layer in layers:
+        for k, v in layer.items():
+            out[k] = {**out.get(k, {}), **v} if isinstance(v, dict) else v
+    return out
+
+
+def toml_text(values: dict) -> str:
+    """Flat keys first, then each table: the layout ``hydo train --config`` reads."""
+    lines = [f"{k} = {_toml_value(v)}" for k, v in values.items() if not isinstance(v, dict)]
+    for name, table in values.items():
+        if isinstance(table, dict):
+            lines += [f"[{name}]", *(f"{k} = {_toml_value(v)}" for k, v in table.items())]
+    return "".join(f"{line}\n" for line in lines)
+
+
+def bench_settings(args: argparse.Namespace) -> dict:
+    """What the bench sets in every run, whatever --config says: run length, no evaluation, no
+    checkpoints, its log interval, and the goal mode and object set of its flags."""
+    return {
+        "goals": args.goals,
+        "objects": args.objects,
+        "steps": 1_000_000_000,
+        "max_minutes": args.seconds / 60,
+        "eval_every": 0,
+        "eval_episodes": 1,
+        "checkpoint_every": 1_000_000_000,
+        "log_every": args.log_every,
+    }
+
+
+def config_settings(path: Path, args: argparse.Namespace) -> dict:
+    """A training config's settings but the bench's own: what ``hydo train --config PATH`` changes."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise SystemExit(f"bench/trainer.py: --config {path} cannot be read ({type(e).__name__})") from None
+    ours = bench_settings(args)
+    return {k: v for k, v in parse_toml(text, f"--config {path}").items() if k not in ours}
+
+
 def run_loop(name: str, args: argparse.Namespace, folder: Path, src: Path = ROOT, tag: str = "") -> dict:
     """One ``hydo train`` of ``args.seconds`` with the code in ``src``; steady-state rates from
     ``metrics.jsonl``."""
     name_tag = f"{name}{tag}"
     toml = folder / f"{name_tag}.toml"
-    toml.write_text(
-        f'goals = "{args.goals}"\nobjects = "{args.objects}"\nsteps = 1000000000\n'
-        f"max_minutes = {args.seconds / 60}\neval_every = 0\neval_episodes = 1\n"
-        f"checkpoint_every = 1000000000\nlog_every = {args.log_every}\n"
-        + "".join(f"{line}\n" for line in args.set + (args.set_default if name == "default" else []))
-    )
+    layers = [bench_settings(args), args.config_settings if name != "baseline" else {}, args.set_settings]
+    if name == "default":
+        layers.append(args.set_default_settings)
+    toml.write_text(toml_text(merge(*layers)))
     run = folder / name_tag
     cmd = [sys.executable, "-m", "hydo_cli.main", "train", "--config", str(toml), "--out", str(run)]
     cmd += LAYOUTS[name]
@@ -122,11 +188,19 @@ def main() -> None:
         metavar="REV",
         help="compare the default layout against this commit's code (a git revision) instead of serial",
     )
+    ap.add_argument(
+        "--config",
+        type=Path,
+        help="take this tree's settings (not the baseline's) from a training config, e.g. configs/6d-train.toml",
+    )
     ap.add_argument("--repeats", type=int, default=1, help="with --baseline: alternations of the two")
     ap.add_argument("--json", type=Path, help="write the results here")
     args = ap.parse_args()
     if args.repeats < 1:
         raise SystemExit("bench/trainer.py: --repeats must be at least 1")
+    args.config_settings = config_settings(args.config, args) if args.config else {}
+    args.set_settings = parse_toml("\n".join(args.set), "--set")
+    args.set_default_settings = parse_toml("\n".join(args.set_default), "--set-default")
 
     results: dict = {}
     with tempfile.TemporaryDirectory(prefix="hydo-bench-trainer-") as tmp:
@@ -161,6 +235,8 @@ def main() -> None:
         "objects": args.objects,
         "set": args.set,
         "set_default": args.set_default,
+        "config": str(args.config) if args.config else None,
+        "config_settings": args.config_settings,
         "baseline": args.baseline,
         "repeats": args.repeats if args.baseline else 1,
         "cpus": os.cpu_count(),

@@ -89,15 +89,19 @@ CASES = {
     ),
     "trainer.py": (
         ["--seconds", "15", "--goals", "planar", "--objects", "cube", "--log-every", "8"]
+        + ["--config", str(ROOT / "tests" / "data" / "bench-trainer.toml")]  # batch_size = 8
         + [
             x
-            for line in ("n_envs = 4", "n_obj = 32", "n_bg = 32", "batch_size = 8", "learning_starts = 16")
+            for line in ("n_envs = 4", "n_obj = 32", "n_bg = 32", "learning_starts = 16")
             for x in ("--set", line)
         ],
         lambda d: (
             d["updates_speedup"] > 0
             and d["default"]["updates_per_env_step"]
             == pytest.approx(d["serial"]["updates_per_env_step"], rel=0.2)
+            # the config's settings reach both of this tree's layouts; its run length does not
+            and d["default"]["batch_size"] == d["serial"]["batch_size"] == 8
+            and d["meta"]["config_settings"] == {"batch_size": 8, "agent": {"policy_delay": 1}}
         ),
     ),
 }
@@ -142,6 +146,8 @@ def test_trainer_bench_against_a_baseline_commit(tmp_path):
         row = data[name]
         assert row["sample_gradients_per_hour"] == pytest.approx(row["updates_per_hour"] * row["batch_size"])
         assert row["updates_per_env_step"] == pytest.approx(0.5, rel=0.2)
+    # --config is this tree's settings: the baseline runs its own defaults (batch 64, not 8)
+    assert data["baseline"]["batch_size"] != data["default"]["batch_size"] == 8
     worktrees = subprocess.run(["git", "-C", str(ROOT), "worktree", "list"], capture_output=True, text=True)
     assert "baseline-src" not in worktrees.stdout
 
