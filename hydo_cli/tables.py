@@ -68,10 +68,11 @@ def compare_rows(report: dict) -> tuple[list[str], list[list[str]]]:
 
 
 def cell(e: dict) -> str:
-    """``0.760 [0.718, 0.802]`` from an ``Estimate.as_dict()`` (``stats.Estimate.cell``)."""
+    """``0.760 [0.718, 0.802]`` from an ``Estimate.as_dict()`` (``stats.Estimate.cell``), with its
+    ``; seeds [...]`` interval where it has one."""
     from hydo_cli.stats import format_cell
 
-    return format_cell(e["iqm"], e["ci_low"], e["ci_high"])
+    return format_cell(e["iqm"], e["ci_low"], e["ci_high"], 3, e.get("seed_ci_low"), e.get("seed_ci_high"))
 
 
 def object_rows(report: dict, split: str) -> tuple[list[str], list[list[str]]]:

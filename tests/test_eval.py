@@ -172,7 +172,8 @@ def test_compare_groups_runs_by_method_in_paper_order():
         return {"target": target, "method": method, "objects": split, "episodes_detail": detail}
 
     runs = [run(f"hydo-s{i}", "hydo", [1, 1, 0, i % 2]) for i in range(4)] + [
-        run("hacman-s0", "hacman", [0, 0, 1, 0])
+        run("hacman-s0", "hacman", [0, 0, 1, 0]),
+        run("hacman-s1", "hacman", [0, 1, 1, 1]),
     ]
     agg = aggregate(runs, ["train"], seed=0)
     assert list(agg["methods"]) == ["hacman", "hydo"]
@@ -180,10 +181,13 @@ def test_compare_groups_runs_by_method_in_paper_order():
     assert hydo_train["ci_over"] == "runs" and hydo_train["iqm"] == pytest.approx(
         0.625
     )  # scores .5 .75 .5 .75
-    assert agg["methods"]["hacman"]["splits"]["train"]["iqm"] == pytest.approx(0.25)
+    hacman_train = agg["methods"]["hacman"]["splits"]["train"]
+    assert hacman_train["iqm"] == pytest.approx(0.5) and hacman_train["ci_over"] == "episodes"
     header, rows = compare_rows({"task": None, "splits": ["train"], "aggregate": agg})
     assert header == ["Method", "Training Objects", "Runs"]
     assert rows[0][0] == "HACMan" and rows[1][0] == "HyDo" and rows[1][2] == "4"
+    # two seeds: the episode interval, then the one across seeds; four: the run bootstrap alone
+    assert rows[0][1].startswith("0.500 [") and "; seeds [" in rows[0][1] and "seeds" not in rows[1][1]
 
 
 def test_task_eval_reports_behaviour_entropy(tmp_path):

@@ -80,3 +80,37 @@ def test_cells_and_errors():
     assert Estimate(0.5, 0.25, 0.75, 2, 2, "episodes", "").cell(2) == "0.50 [0.25, 0.75]"
     with pytest.raises(ValueError, match="at least one run"):
         interval_estimate([[]])
+
+
+def test_two_or_three_runs_also_get_an_interval_across_seeds():
+    # three seeds that disagree (success 0.2, 0.5, 0.8 over 200 episodes each): the episode interval
+    # of their mean is ~+-0.05, blind to the seeds; runs-then-episodes is ~+-0.25
+    runs = [np.array([1.0] * k + [0.0] * (200 - k)) for k in (40, 100, 160)]
+    e = interval_estimate([runs], seed=1)
+    assert e.iqm == pytest.approx(0.5) and e.ci_over == "episodes"
+    assert e.seed_ci_low < e.ci_low <= e.iqm <= e.ci_high < e.seed_ci_high
+    assert (e.seed_ci_high - e.seed_ci_low) > 3 * (e.ci_high - e.ci_low)
+    # a drawn set of seeds is at best all 0.2 or all 0.8 (1/27 each), plus episode noise
+    assert 0.15 < e.seed_ci_low < 0.4 and 0.6 < e.seed_ci_high < 0.85
+    assert "seeds: percentile bootstrap over runs" in e.note
+    assert (
+        e.cell()
+        == f"0.500 [{e.ci_low:.3f}, {e.ci_high:.3f}]; seeds [{e.seed_ci_low:.3f}, {e.seed_ci_high:.3f}]"
+    )
+    # seeds that agree: nothing but episode noise left, so about the episode interval's width
+    same = interval_estimate([[runs[1]] * 3], seed=1)
+    width, seed_width = same.ci_high - same.ci_low, same.seed_ci_high - same.seed_ci_low
+    assert seed_width == pytest.approx(width, rel=0.2)
+    # strata (splits) are drawn apart: two seeds per split
+    two = interval_estimate([[runs[0], runs[2]], [runs[1], runs[1]]], seed=1)
+    assert two.min_runs == 2 and two.seed_ci_low < two.ci_low and two.seed_ci_high > two.ci_high
+    assert interval_estimate([[runs[1], runs[1]]], seed=4) == interval_estimate([[runs[1], runs[1]]], seed=4)
+
+
+def test_one_run_or_four_have_no_seed_interval():
+    runs = [np.array([1.0] * k + [0.0] * (20 - k)) for k in (4, 8, 12, 16)]
+    for case in ([runs[:1]], [runs]):
+        e = interval_estimate(case)
+        assert e.seed_ci_low is None and e.seed_ci_high is None and "; seeds" not in e.cell()
+    e = interval_estimate([runs[:2]], episode_bootstrap=False)  # biased statistics: no interval at all
+    assert e.seed_ci_low is None
