@@ -351,6 +351,7 @@ def evaluate(
                         "stochastic": lp.stochastic,
                         "n_obj": lp.n_obj,
                         "n_bg": lp.n_bg,
+                        "training": lp.training,
                         "objects": split,
                         **run_summary(results, task_def),
                         "wall_s": wall,

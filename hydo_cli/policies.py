@@ -40,6 +40,7 @@ class LoadedPolicy:
     method: str = ""  # what --compare groups by: the run's / manifest's algo, or the baseline's name
     goals: str | None = None  # the goal mode it was trained on ("planar" | "6d"); None: a baseline
     contacts: str | None = None  # the contact model it was trained in (a run's config); None: unknown
+    training: dict | None = None  # a run's training budget (``training_budget``); None: not a run
 
 
 def load_policy(
@@ -140,8 +141,38 @@ def agent_policy(agent: HybridAgent, mode: str, generator: torch.Generator, feas
     return policy
 
 
+def training_budget(ckpt: dict, cfg: TrainConfig, agent: HybridAgent) -> dict | None:
+    """What a run was given and what it had done at its checkpoint: a Table I "at the same budget"
+    compares these, and one method's runs should share the ``learner`` settings. Recorded in each
+    eval report's run (``training``). None for a checkpoint without counters."""
+    if "counters" not in ckpt or "wall_s" not in ckpt:
+        return None
+    env_steps, updates, _ = (int(v) for v in ckpt["counters"])
+    return {
+        "env_steps": env_steps,
+        "updates": updates,
+        "sample_gradients": updates * cfg.batch_size,  # summed over the workers' shares of the batch
+        "minutes": float(ckpt["wall_s"]) / 60,
+        "max_minutes": cfg.max_minutes,  # 0: no wall-clock limit
+        "workers": int(ckpt.get("workers", 1)),
+        "objects": cfg.objects,
+        "learner": {
+            "batch_size": cfg.batch_size,
+            "updates_per_step": cfg.updates_per_step,
+            "denoise_steps": agent.config.denoise_steps,
+            "policy_delay": agent.config.resolved_policy_delay,
+        },
+    }
+
+
 def load_agent(path: Path) -> tuple[HybridAgent, TrainConfig, str]:
     """A run directory (its ``checkpoint.pt``) or a checkpoint file → ``(agent, config, command)``."""
+    agent, cfg, command, _ = load_trained(path)
+    return agent, cfg, command
+
+
+def load_trained(path: Path) -> tuple[HybridAgent, TrainConfig, str, dict | None]:
+    """``load_agent`` and the run's ``training_budget``."""
     path = Path(path)
     from models.algos import AgentConfig, HybridAgent
     from models.checkpoint import CheckpointError, load_checkpoint
@@ -164,7 +195,7 @@ def load_agent(path: Path) -> tuple[HybridAgent, TrainConfig, str]:
         ) from None
     command_file = ckpt_path.parent / "command.txt"
     command = command_file.read_text().strip() if command_file.exists() else "unknown"
-    return agent, cfg, command
+    return agent, cfg, command, training_budget(ckpt, cfg, agent)
 
 
 def load_policy_from_checkpoint(
@@ -179,7 +210,7 @@ def load_policy_from_checkpoint(
     "zero")."""
     import torch
 
-    agent, cfg, _ = load_agent(path)
+    agent, cfg, _, budget = load_trained(path)
     if weights is not None:
         agent.config = dataclasses.replace(agent.config, eval_weights=weights)
     if chain_noise is not None:
@@ -194,4 +225,5 @@ def load_policy_from_checkpoint(
         cfg.algo,
         cfg.goals,
         cfg.contacts,
+        budget,
     )

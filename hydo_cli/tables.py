@@ -75,6 +75,77 @@ def cell(e: dict) -> str:
     return format_cell(e["iqm"], e["ci_low"], e["ci_high"], 3, e.get("seed_ci_low"), e.get("seed_ci_high"))
 
 
+def _budget(run: dict) -> dict | None:
+    """A run's ``training`` (``hydo_cli.policies.training_budget``) where it is well formed: a record
+    is a file from elsewhere, and records made before the key existed have none."""
+    b = run.get("training")
+    numbers = ("env_steps", "updates", "sample_gradients", "minutes", "max_minutes")
+    if not isinstance(b, dict) or not all(isinstance(b.get(k), int | float) for k in numbers):
+        return None
+    learner = b.get("learner")
+    if not isinstance(learner, dict) or not all(isinstance(v, int | float) for v in learner.values()):
+        return None
+    return b
+
+
+#: how ``learner_text`` names a budget's learner settings, in this order
+LEARNER_NAMES = {
+    "denoise_steps": "K",
+    "batch_size": "batch",
+    "updates_per_step": "UTD",
+    "policy_delay": "actor every",
+}
+
+
+def learner_text(learner: dict) -> str:
+    """``K 5, batch 64, UTD 0.5, actor every 2`` from a budget's ``learner``."""
+    keys = [k for k in LEARNER_NAMES if k in learner] + sorted(k for k in learner if k not in LEARNER_NAMES)
+    return ", ".join(f"{LEARNER_NAMES.get(k, k)} {learner[k]:g}" for k in keys)
+
+
+def budget_rows(report: dict) -> tuple[list[str], list[list[str]]]:
+    """One row per trained run (not per split) with its training budget; no rows when no run has one
+    (baselines, exported models, records made before runs carried it)."""
+    header = ["run", "method", "minutes", "env steps", "updates", "sample-gradients", "learner"]
+    rows, seen = [], set()
+    for r in report["runs"]:
+        b = _budget(r)
+        if b is None or r["target"] in seen:
+            continue
+        seen.add(r["target"])
+        limit = f" of {b['max_minutes']:g}" if b["max_minutes"] else ""
+        rows.append(
+            [
+                r["target"],
+                METHOD_NAMES.get(r["method"], r["method"]),
+                f"{b['minutes']:.0f}{limit}",
+                f"{b['env_steps']:,}",
+                f"{b['updates']:,}",
+                f"{b['sample_gradients'] / 1e6:.1f}M",
+                learner_text(b["learner"]),
+            ]
+        )
+    return header, rows
+
+
+def learner_notes(report: dict) -> list[str]:
+    """One line per method whose runs were trained with different learner settings: a Table I row
+    should be one setting's seeds."""
+    by_method: dict[str, dict[str, list[str]]] = {}
+    for r in report["runs"]:
+        b = _budget(r)
+        if b is not None:
+            targets = by_method.setdefault(r["method"], {}).setdefault(learner_text(b["learner"]), [])
+            if r["target"] not in targets:
+                targets.append(r["target"])
+    return [
+        f"note: {METHOD_NAMES.get(m, m)}'s runs were trained with {len(v)} different learners: "
+        + "; ".join(f"{text} ({', '.join(ts)})" for text, ts in v.items())
+        for m, v in by_method.items()
+        if len(v) > 1
+    ]
+
+
 def object_rows(report: dict, split: str) -> tuple[list[str], list[list[str]]]:
     runs = [r for r in report["runs"] if r["objects"] == split]
     objects = sorted({o for r in runs for o in r["per_object"]})
@@ -135,6 +206,9 @@ def markdown_report(report: dict) -> str:
             out.append(line + ".")
         out.append("")
     out += ["## Runs", "", markdown_table(*run_rows(report)), ""]
+    header, rows = budget_rows(report)
+    if rows:
+        out += ["## Training budgets", "", markdown_table(header, rows), *learner_notes(report), ""]
     out += ["## IQM across runs, per method", ""]
     for m in agg["methods"].values():
         out.append(f"- {m['name']}: success rate IQM {cell(m['all'])}: {m['all']['note']}.")
@@ -162,6 +236,11 @@ def print_report(report: dict) -> None:
     if report["compare"]:
         title = "Behaviour diversity" if report["task"] else "Table I: success rate"
         out.print(rich_table(f"{title}, IQM [95% CI] across runs", *compare_rows(report)))
+        header, rows = budget_rows(report)
+        if rows:  # "at the same budget": what each trained run was given and did
+            out.print(rich_table("training budgets", header, rows))
+        for line in learner_notes(report):
+            out.print(line, highlight=False)
     else:
         for split in report["splits"]:
             header, rows = object_rows(report, split)

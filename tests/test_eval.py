@@ -398,3 +398,68 @@ def test_eval_plays_in_the_contacts_a_run_was_trained_in_unless_told(tmp_path):
     assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
     assert "trained with different --contacts" in r.stderr and "(hacman)" in r.stderr and "(hydo)" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_a_run_reports_its_training_budget_and_table_one_shows_it():
+    """A trained run's eval report carries its budget (``training``): Table I "at the same budget" is
+    read off the records, and one method's runs trained with other learner settings are pointed out."""
+    from hydo_cli.policies import load_policy
+    from hydo_cli.tables import budget_rows, learner_notes, markdown_report
+
+    old_run = Path(__file__).parent / "data" / "old-run-v0"  # 120 env steps, batch 8, K 2, no limit
+    budget = load_policy(str(old_run), seed=0).training
+    assert budget["env_steps"] == 120 and budget["max_minutes"] == 0 and budget["objects"] == "cube"
+    assert budget["sample_gradients"] == budget["updates"] * 8 and budget["updates"] > 0
+    assert budget["learner"] == {
+        "batch_size": 8,
+        "updates_per_step": 0.5,
+        "denoise_steps": 2,
+        "policy_delay": 1,
+    }
+    assert load_policy("heuristic").training is None
+
+    def run(target, method, training, split="train"):
+        detail = [{"success": True, "behaviour": None}]
+        return {
+            "target": target,
+            "method": method,
+            "objects": split,
+            "episodes_detail": detail,
+            "training": training,
+        }
+
+    other = {**budget, "learner": {**budget["learner"], "denoise_steps": 5}}
+    runs = [
+        run("a", "hydo-cm", budget),
+        run("a", "hydo-cm", budget, "unseen-instance"),  # one row per run, not per split
+        run("b", "hydo-cm", other),
+        run("c", "hacman", budget),
+        run("d", "hacman", "150 min"),  # a record from elsewhere: malformed, left out
+        run("e", "hacman", None),  # a record from before the key
+    ]
+    report = {"runs": runs}
+    header, rows = budget_rows(report)
+    assert [r[0] for r in rows] == ["a", "b", "c"] and header[2] == "minutes"
+    assert rows[0][3] == "120" and rows[0][6] == "K 2, batch 8, UTD 0.5, actor every 1"
+    (note,) = learner_notes(report)
+    assert note.startswith("note: HyDo + CM's runs were trained with 2 different learners") and "K 5" in note
+    assert budget_rows({"runs": [run("e", "hacman", None)]})[1] == []
+    # the Markdown report lays the budgets out under the runs
+    agg = aggregate(runs[:1], ["train"], seed=0)
+    full = {"command": "hydo eval a", "compare": False, "task": None, "splits": ["train"], "goals": "planar"}
+    full |= {"clutter": 0, "obs": "mesh", "episodes": 1, "seed": 0, "aggregate": agg}
+    one = {
+        **runs[0],
+        "description": "a",
+        "stochastic": True,
+        "episodes_per_s": 1.0,
+        "failures": failure_counts([]),
+    }
+    one |= {
+        "success_rate": 1.0,
+        "episodes": 1,
+        "mean_steps_to_success": 1.0,
+        "rejected_primitives": 0,
+        "per_object": {},
+    }
+    assert "## Training budgets" in markdown_report({**full, "runs": [one]})
