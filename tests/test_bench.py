@@ -14,6 +14,8 @@ OLD_RUN = ROOT / "tests" / "data" / "old-run-v0"  # a tiny run with metrics.json
 # three episodes of a 6D ladder's twin log (seed 5): episode 0 is a mug the registration called a
 # success 6.9 cm from its goal (inliers 0.83, goal coverage 0.93); 1 and 2 are true successes
 TWIN_SESSION = ROOT / "tests" / "data" / "twin-session-v0"
+# py-spy raw samples of one training worker (session 56's seed-0 run), trimmed to five stacks
+PYSPY_RAW = ROOT / "tests" / "data" / "pyspy-worker-raw.txt"
 
 CASES = {
     "curves.py": ([str(OLD_RUN)], lambda d: d),
@@ -85,6 +87,23 @@ CASES = {
         lambda d: (
             sum(v["primitives"] for k, v in d.items() if k != "meta") > 0
             and all(0 <= v["force_stopped"] <= 1 for k, v in d.items() if k != "meta")
+        ),
+    ),
+    "run_profile.py": (
+        # one worker's py-spy samples: 6 in an update (backward), 2 in an env step's push, 1 waiting
+        # at a gradient sync, 1 in an evaluation's env step; 5 of an idle thread outside the loop
+        ["--raw", str(PYSPY_RAW)],
+        lambda d: (
+            d["workers"][0]["loop_samples"] == 10
+            and {k: v for k, v in d["workers"][0]["parts"].items() if v}
+            == {
+                "update": pytest.approx(0.6),
+                "env step": pytest.approx(0.2),
+                "gradient sync: waiting": pytest.approx(0.1),
+                "evaluation": pytest.approx(0.1),  # its env step is not counted as training's
+            }
+            and d["workers"][0]["env_step"] == {"push physics": 1.0}
+            and d["workers"][0]["update_lines"][0]["line"] == "models/algos.py:673"
         ),
     ),
     "trainer.py": (
