@@ -17,7 +17,8 @@ children (workers 1..). Needs py-spy (``pip install py-spy``; not a dependency o
 
 JSON: ``{"meta": {...}, "workers": [{"rank", "pid", "loop_samples", "parts": {part: share},
 "env_step": {part: share of the env step}, "update_lines": [{"line", "code", "share"}]}]}``; shares
-are fractions of the worker's samples inside its training loop (``Trainer._train``).
+are fractions of the worker's samples inside its training loop (``Trainer._train``). ``code`` is
+that line in this checkout: profile a run trained on other code from a checkout of that code.
 """
 
 from __future__ import annotations
