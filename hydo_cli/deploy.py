@@ -389,7 +389,15 @@ def ladder_cmd(
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write the ladder's JSON here.")
     ] = None,
-    jobs: Annotated[int, typer.Option("--jobs", min=1, help="Rungs run at a time (one process each).")] = 2,
+    jobs: Annotated[
+        int,
+        typer.Option(
+            "--jobs",
+            min=1,
+            help="Processes: rungs run side by side, and each twin rung's episodes are split among "
+            "them (the figures do not depend on it).",
+        ),
+    ] = 2,
     registration: Annotated[
         Registration,
         typer.Option(

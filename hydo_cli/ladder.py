@@ -26,6 +26,12 @@ refused primitives, force stops and reflexes. Against the previous rung: episode
 The ``twin`` rung also scores the deploy loop's own verdict (``robot.loop``, from registration)
 against the truth: agreement, false successes (of which symmetric-pose confusions: ADD-S under 1 cm
 with ADD over 2 cm), false failures and ambiguous verdicts.
+
+With ``jobs`` processes, each twin rung's episodes are also split into ``jobs`` contiguous pieces,
+one twin session each (``LOG/<rung>/e000-049``, ...), and merged back in episode order: a twin
+episode is the same whichever session runs it (its object, start, goal, noise and samples come from
+``(seed, episode)``, and the twin's simulation state is fresh each episode), so the figures do not
+depend on ``jobs``.
 """
 
 from __future__ import annotations
@@ -73,7 +79,8 @@ class RungResult:
     force_stops: int = 0
     reflexes: int = 0
     mean_registration_adds_m: float | None = None
-    seconds: float = 0.0
+    n_registrations: int = 0  # the twin rung's registrations that mean is over
+    seconds: float = 0.0  # process seconds (a rung split into pieces: theirs summed)
     extra: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
@@ -169,10 +176,18 @@ def run_env_rung(
 
 
 def run_twin_rung(
-    rung: str, model: Path, n: int, seed: int, objects: str, log_dir: Path, registration: str = "auto"
+    rung: str,
+    model: Path,
+    n: int,
+    seed: int,
+    objects: str,
+    log_dir: Path,
+    registration: str = "auto",
+    first: int = 0,
 ) -> RungResult:
     """``twin-true`` / ``twin-cameras`` / ``twin``: ``hydo deploy --robot sim`` on the same episodes
-    (``robot.loop``); ``registration``: the ``twin`` rung's (``auto`` | ``views`` | ``model``)."""
+    (``robot.loop``), episodes ``first`` … ``first + n - 1`` of ``seed``; ``registration``: the
+    ``twin`` rung's (``auto`` | ``views`` | ``model``)."""
     from robot.loop import DeployConfig, Deployment
     from robot.report import write_summary
 
@@ -181,6 +196,7 @@ def run_twin_rung(
         robot="sim",
         model=model,
         episodes=n,
+        first_episode=first,
         seed=seed,
         log_dir=log_dir,
         objects=objects,
@@ -232,17 +248,56 @@ def run_twin_rung(
         force_stops=res.force_stops,
         reflexes=res.reflexes,
         mean_registration_adds_m=float(np.mean(adds)) if adds and rung == "twin" else None,
+        n_registrations=len(adds) if rung == "twin" else 0,
         seconds=time.perf_counter() - t0,
         extra=extra,
     )
     return result
 
 
+def twin_pieces(n: int, parts: int) -> list[tuple[int, int]]:
+    """``(first, count)`` of up to ``parts`` contiguous pieces of episodes ``0 … n - 1``, whose sizes
+    differ by at most one."""
+    parts = max(1, min(parts, n))
+    sizes = [n // parts + (i < n % parts) for i in range(parts)]
+    return [(sum(sizes[:i]), size) for i, size in enumerate(sizes)]
+
+
+def merge_pieces(pieces: list[RungResult]) -> RungResult:
+    """One rung from the results of its pieces, given in episode order."""
+    if len(pieces) == 1:
+        return pieces[0]
+    n_reg = sum(p.n_registrations for p in pieces)
+    extra = dict(pieces[0].extra)
+    if "steps_refused_by_kind" in extra:
+        refused: Counter = Counter()
+        for p in pieces:
+            refused.update(p.extra["steps_refused_by_kind"])
+        extra["steps_refused_by_kind"] = dict(refused)
+    extra["pieces"] = len(pieces)
+    return RungResult(
+        pieces[0].rung,
+        pieces[0].description,
+        [e for p in pieces for e in p.episodes],
+        refused_primitives=sum(p.refused_primitives for p in pieces),
+        force_stops=sum(p.force_stops for p in pieces),
+        reflexes=sum(p.reflexes for p in pieces),
+        mean_registration_adds_m=(
+            sum(p.mean_registration_adds_m * p.n_registrations for p in pieces if p.n_registrations) / n_reg
+            if n_reg
+            else None
+        ),
+        n_registrations=n_reg,
+        seconds=sum(p.seconds for p in pieces),
+        extra=extra,
+    )
+
+
 def _run_rung(args) -> RungResult:
-    rung, model, n, seed, objects, goals, log_dir, registration, env_draws = args
+    rung, model, first, n, seed, objects, goals, log_dir, registration, env_draws = args
     if rung.startswith("env"):
         return run_env_rung(rung, model, n, seed, objects, goals, env_draws)
-    return run_twin_rung(rung, model, n, seed, objects, log_dir / rung, registration)
+    return run_twin_rung(rung, model, n, seed, objects, log_dir, registration, first)
 
 
 def run_ladder(
@@ -256,26 +311,33 @@ def run_ladder(
     registration: str = "auto",
     env_draws: int = 1,
 ) -> list[RungResult]:
-    """Run ``rungs`` of the ladder for an exported ``model`` (``jobs`` rungs at a time, one process
-    each); returns them in ladder order. Twin sessions are logged under ``log_dir/<rung>``;
-    ``registration``: the ``twin`` rung's (``hydo deploy --registration``); ``env_draws``: draws of
-    the policy's sampling on the ``env`` rung (the first is the one its episodes are compared on)."""
+    """Run ``rungs`` of the ladder for an exported ``model`` in ``jobs`` processes (each twin rung
+    split into ``jobs`` pieces of its episodes); returns them in ladder order. Twin sessions are
+    logged under ``log_dir/<rung>`` (``log_dir/<rung>/eFFF-LLL`` per piece); ``registration``: the
+    ``twin`` rung's (``hydo deploy --registration``); ``env_draws``: draws of the policy's sampling
+    on the ``env`` rung (the first is the one its episodes are compared on)."""
     import json
 
     manifest = json.loads((Path(model) / "manifest.json").read_text())
     objects = objects or str(manifest.get("objects") or "train")
     goals = str(manifest.get("goals", "6d"))
-    tasks = [
-        (r, Path(model), episodes, seed, objects, goals, Path(log_dir), registration, env_draws)
-        for r in rungs
-    ]
+    tasks = []
+    for r in rungs:  # the env rungs are a minute or two: whole; the twin's ~8 s an episode: split
+        pieces = [(0, episodes)] if r.startswith("env") else twin_pieces(episodes, jobs)
+        for first, n in pieces:
+            folder = Path(log_dir) / r
+            if len(pieces) > 1:
+                folder = folder / f"e{first:03d}-{first + n - 1:03d}"
+            tasks.append((r, Path(model), first, n, seed, objects, goals, folder, registration, env_draws))
     if jobs <= 1:
-        return [_run_rung(t) for t in tasks]
-    # slowest first (the twin with cameras), so the rungs finish close together
-    order = sorted(range(len(tasks)), key=lambda i: -list(RUNGS).index(tasks[i][0]))
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
-        futures = {i: pool.submit(_run_rung, tasks[i]) for i in order}
-        return [futures[i].result() for i in range(len(tasks))]
+        done = [_run_rung(t) for t in tasks]
+    else:
+        # slowest first (the twin with cameras), so the processes finish close together
+        order = sorted(range(len(tasks)), key=lambda i: -list(RUNGS).index(tasks[i][0]))
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+            futures = {i: pool.submit(_run_rung, tasks[i]) for i in order}
+            done = [futures[i].result() for i in range(len(tasks))]
+    return [merge_pieces([d for t, d in zip(tasks, done, strict=True) if t[0] == r]) for r in rungs]
 
 
 def compare_rungs(results: list[RungResult]) -> list[dict]:

@@ -117,6 +117,9 @@ class DeployConfig:
     goal_offset: tuple[float, float, float] | None = None  # (dx m, dy m, yaw deg) from the start cloud
     background: Path | None = None  # None: BACKGROUND next to the cell file (sim: captured at start)
     episodes: int = 1
+    # twin only: the index of the first episode (episode ``ep`` of a seed is the same object, start
+    # and goal in any session), so that ``hydo deploy ladder`` can split a rung's episodes over processes
+    first_episode: int = 0
     max_steps: int = MAX_PRIMITIVES
     log_dir: Path | None = None  # session folder; None: runs/deploy/<time>-<robot>
     dry_run: bool = False
@@ -223,6 +226,10 @@ class Deployment:
             raise InputError(
                 "true-pose perception exists only in the twin with its sampled goals "
                 "(--robot sim, no --goal, --goal-offset or --replay)"
+            )
+        if cfg.first_episode and (cfg.robot != "sim" or cfg.replay is not None or cfg.first_episode < 0):
+            raise ValueError(
+                f"`first_episode` is for the twin's sampled episodes (>= 0). Got {cfg.first_episode}."
             )
         if cfg.registration not in REGISTRATIONS:
             raise ValueError(
@@ -372,7 +379,7 @@ class Deployment:
                 self.log.event("warm_up", policy_s=round(warm, 4))
                 if self.background is None:
                     self.background = self._capture_background(cameras)
-                for ep in range(cfg.episodes):
+                for ep in range(cfg.first_episode, cfg.first_episode + cfg.episodes):
                     try:
                         self.result.episodes.append(self._episode(ep, cameras, robot, assets))
                     except ReplayExhausted as e:  # every recorded frame played: the replay is over
@@ -690,9 +697,10 @@ class Deployment:
         w.rng = np.random.default_rng([episode_seed(self.cfg.seed, ep), 1])
         self.rng = np.random.default_rng([episode_seed(self.cfg.seed, ep), 2])
         asset, start, goal_pose = sample_episode(w, assets, self.goal_mode, episode_rng)
-        if w.asset is not asset:
-            w.load(asset)
-            self.gate = SafetyGate(self.cell, w.kin)
+        # fresh simulation state (the solver's warm start, time) every episode, not only when the
+        # object changes: an episode's physics then does not depend on the one before it either
+        w.load(asset)
+        self.gate = SafetyGate(self.cell, w.kin)
         w.reset_arm()
         self._true_goal_T = None
         if self.cfg.goal is None and self.cfg.goal_offset is None:

@@ -299,6 +299,61 @@ def test_a_twin_episode_does_not_depend_on_how_long_the_one_before_ran(tiny_mode
     assert first and first == second
 
 
+def test_a_twin_session_from_episode_k_plays_what_a_session_from_0_plays_there(tiny_model, tmp_path):
+    """Episodes 1 and 2 of seed 3 end the same (object, steps, final distance to the bit) in a session
+    of episodes 0-2 and in one that starts at episode 1: the twin's simulation state is fresh each
+    episode (the solver's warm start carried over before), so the ladder can split a rung's episodes
+    over processes. ``first_episode`` is for the twin's sampled episodes only."""
+
+    def episodes(first: int, n: int, folder: str) -> list:
+        cfg = DeployConfig(
+            robot="sim",
+            model=tiny_model,
+            episodes=n,
+            first_episode=first,
+            max_steps=2,
+            seed=3,
+            perception="true",
+            log_dir=tmp_path / folder,
+        )
+        res = Deployment.prepare(cfg).run()
+        started = [e["episode"] for e in read_log(tmp_path / folder) if e["event"] == "episode_start"]
+        assert started == list(range(first, first + n))
+        return [(e.object, e.steps, e.true_distance) for e in res.episodes]
+
+    whole, piece = episodes(0, 3, "whole"), episodes(1, 2, "piece")
+    assert len(whole) == 3 and whole[1:] == piece
+    with pytest.raises(ValueError, match="first_episode"):
+        Deployment.prepare(
+            DeployConfig(robot="panda", model=tiny_model, first_episode=1, log_dir=tmp_path / "c")
+        )
+
+
+def test_a_rung_split_into_pieces_is_merged_back_in_episode_order():
+    from hydo_cli.ladder import LadderEpisode, RungResult, merge_pieces, twin_pieces
+
+    assert twin_pieces(100, 2) == [(0, 50), (50, 50)]
+    assert twin_pieces(5, 3) == [(0, 2), (2, 2), (4, 1)] and twin_pieces(1, 4) == [(0, 1)]
+
+    def piece(objects, adds, n_reg, refused):
+        eps = [
+            LadderEpisode(o, o == "cube", 0.01, 3, "success" if o == "cube" else "near_miss") for o in objects
+        ]
+        return RungResult(
+            "twin", "d", eps, force_stops=2, reflexes=1, mean_registration_adds_m=adds, n_registrations=n_reg,
+            seconds=10.0, extra={"registration": "model", "steps_refused_by_kind": refused},
+        )  # fmt: skip
+
+    merged = merge_pieces(
+        [piece(["cube", "mug"], 0.004, 3, {"PlanError": 1}), piece(["wedge"], 0.008, 1, {})]
+    )
+    assert [e.object for e in merged.episodes] == ["cube", "mug", "wedge"]
+    assert (merged.force_stops, merged.reflexes, merged.seconds, merged.n_registrations) == (4, 2, 20.0, 4)
+    assert merged.mean_registration_adds_m == pytest.approx(0.005)  # (3 × 4 + 1 × 8) / 4 mm
+    assert merged.extra == {"registration": "model", "steps_refused_by_kind": {"PlanError": 1}, "pieces": 2}
+    assert merged.summary()["success_rate"] == pytest.approx(1 / 3)
+
+
 @pytest.mark.parametrize(("robot", "perception"), [("panda", "true"), ("sim", "cameras-true-pose")])
 def test_true_poses_exist_only_in_the_twin_with_its_sampled_goals(tiny_model, tmp_path, robot, perception):
     cfg = DeployConfig(
@@ -314,7 +369,8 @@ def test_true_poses_exist_only_in_the_twin_with_its_sampled_goals(tiny_model, tm
 
 def test_ladder_command_runs_the_same_episodes_on_each_rung(tiny_model, tmp_path):
     """``hydo deploy ladder``: a table, ladder.json with each rung's success, causes and the episodes
-    lost and gained against the rung above, on the same objects in the same order."""
+    lost and gained against the rung above, on the same objects in the same order; with two jobs
+    the twin rung's episodes run in two twin sessions."""
     from typer.testing import CliRunner
 
     from hydo_cli.main import app
@@ -332,7 +388,7 @@ def test_ladder_command_runs_the_same_episodes_on_each_rung(tiny_model, tmp_path
             "--rungs",
             "twin-true,env",
             "--jobs",
-            "1",
+            "2",
             "--log",
             str(out),
             "--json",
@@ -355,7 +411,11 @@ def test_ladder_command_runs_the_same_episodes_on_each_rung(tiny_model, tmp_path
     for rung in doc["rungs"]:
         failed = sum(not e["success"] for e in doc["episodes"][rung["rung"]])
         assert sum(rung["causes"].values()) == failed
-    assert json.loads((out / "twin-true" / "summary.json").read_text())["episodes"] == 2
+    # two processes: the twin rung's episodes in two pieces, one twin session each, merged back
+    pieces = [
+        json.loads((out / "twin-true" / p / "summary.json").read_text()) for p in ("e000-000", "e001-001")
+    ]
+    assert [p["episodes"] for p in pieces] == [1, 1] and twin["pieces"] == 2
     objects = [[e["object"] for e in doc["episodes"][k]] for k in ("env", "twin-true")]
     assert objects[0] == objects[1]
 
