@@ -47,6 +47,7 @@ import numpy as np  # noqa: E402
 from robot import registration  # noqa: E402
 from robot.cell import Perception  # noqa: E402
 from robot.registration import Registration  # noqa: E402
+from robot.session_log import session_folders  # noqa: E402
 from sim.atomic import atomic_write_text  # noqa: E402
 from sim.contract import SUCCESS_THRESHOLD_M  # noqa: E402
 
@@ -76,7 +77,12 @@ def _events(path: Path) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("sessions", nargs="+", type=Path, help="twin session folders (or their log.jsonl)")
+    ap.add_argument(
+        "sessions",
+        nargs="+",
+        type=Path,
+        help="twin session folders (or their log.jsonl, or a ladder rung's folder of sessions)",
+    )
     ap.add_argument("--margin", type=float, default=Perception().success_margin, help="success margin (m)")
     ap.add_argument(
         "--success-coverage",
@@ -108,7 +114,9 @@ def main() -> None:
     near = {"true": [], "false": []}  # (coverage, inliers) of registrations under thr - margin
     stops: Counter = Counter()
     replayed: Counter = Counter()  # success / failure / unknown had the loop stopped on this verdict
-    for session in args.sessions:
+    # a ladder rung split over processes holds one session per piece of its episodes
+    sessions = [f for path in args.sessions for f in (session_folders(path) or [path])]
+    for session in sessions:
         # the session's step limit (a stop there is no claim the verdict could have withheld)
         meta = (session if session.is_dir() else session.parent) / "session.json"
         config = json.loads(meta.read_text())["config"] if meta.is_file() else {}
@@ -186,7 +194,7 @@ def main() -> None:
             "success_rate": replayed["success"] / max(1, n_replayed),
         },
     }
-    print(f"verdict vs truth, {len(args.sessions)} session(s), margin {args.margin * 1000:.1f} mm")
+    print(f"verdict vs truth, {len(sessions)} session(s), margin {args.margin * 1000:.1f} mm")
     print(f"{'verdict':<12}{'within 3 cm':>14}{'not within':>14}")
     for v, c in results["verdicts"].items():
         print(f"{v:<12}{c['within_3cm']:>14}{c['not_within_3cm']:>14}")

@@ -70,8 +70,19 @@ class Step:
 
 def load_steps(session: Path, episode: int | None) -> tuple[list[Step], dict[int, dict]]:
     """The session's steps in order (of ``episode`` only, if given) and each episode's end event."""
-    from robot.session_log import read_log
+    from robot.session_log import read_log, session_folders
 
+    pieces = session_folders(session)
+    if len(pieces) > 1:  # a ladder rung split over processes: the session that played the episode
+        played = [
+            p for p in pieces if episode is not None and any((p / "steps").glob(f"e{episode:03d}-s*.npz"))
+        ]
+        if not played:
+            names = ", ".join(p.name for p in pieces)
+            raise HydoError(
+                f"SESSION {session} holds {len(pieces)} sessions ({names}): give one, or --episode N"
+            )
+        session = played[0]
     if not (session / "log.jsonl").is_file() or not (session / "steps").is_dir():
         raise HydoError(f"SESSION {session} is not a deploy session folder (no log.jsonl and steps/)")
     steps = {}

@@ -103,6 +103,17 @@ class SessionLog:
         return False
 
 
+def session_folders(path: str | Path) -> list[Path]:
+    """``path`` if it is a session folder (it has ``log.jsonl``); else the session folders right inside
+    it, in name order (a ladder rung whose episodes ran as several sessions: ``e000-049``, ...)."""
+    path = Path(path)
+    if (path / "log.jsonl").is_file():
+        return [path]
+    if not path.is_dir():
+        return []
+    return sorted(p for p in path.iterdir() if (p / "log.jsonl").is_file())
+
+
 def read_log(path: str | Path) -> list[dict]:
     """Parse ``log.jsonl`` up to its last complete line (a torn last line after a crash is skipped)."""
     path = Path(path)

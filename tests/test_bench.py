@@ -154,6 +154,21 @@ def test_bench_script_runs(script, tmp_path):
     assert data and check(data), data
 
 
+def test_verdict_reads_a_ladder_rung_split_into_sessions(tmp_path):
+    """``hydo deploy ladder --jobs 2`` leaves a twin rung as one session per piece of its episodes
+    (``twin/e000-049``, ...): given the rung's folder, the bench reads every piece."""
+    import shutil
+
+    for piece in ("e000-002", "e003-005"):
+        shutil.copytree(TWIN_SESSION, tmp_path / "twin" / piece)
+    data = _run_bench("verdict.py", [str(tmp_path / "twin")], tmp_path)
+    assert data["stops"] == {"success (false) -> uncertain": 2, "success (true) -> success": 4}
+    empty = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "verdict.py"), str(tmp_path)], capture_output=True, text=True
+    )
+    assert empty.returncode != 0 and "no log.jsonl" in empty.stderr
+
+
 @pytest.mark.slow
 def test_trainer_bench_against_a_baseline_commit(tmp_path):
     """``bench/trainer.py --baseline REV`` runs REV's loop (a temporary git worktree, removed again)

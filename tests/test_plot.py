@@ -185,6 +185,21 @@ def test_deploy_review_as_video(session, tmp_path):
     assert len(frames) == 2 and frames[0].shape[1] >= 900 and frames[0].std() > 0
 
 
+def test_deploy_review_finds_the_episode_in_a_ladder_rung_split_into_sessions(session, tmp_path):
+    """A ladder rung run by two processes is a folder of sessions (``twin/e000-049``, ...): review
+    draws the one that played ``--episode``, and without it says which sessions there are."""
+    import shutil
+
+    rung = tmp_path / "twin"
+    for piece in ("e000-000", "e001-001"):
+        shutil.copytree(session, rung / piece)
+    r = hydo("deploy", "review", str(rung), "--episode", "0", "--out", str(tmp_path / "s.png"))
+    assert r.returncode == 0 and (tmp_path / "s.png").is_file(), r.stderr
+    r = hydo("deploy", "review", str(rung), "--out", str(tmp_path / "t.png"))
+    assert r.returncode == 1 and "holds 2 sessions (e000-000, e001-001)" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
