@@ -59,8 +59,9 @@ where the goal keeps the object's face up and where it asks for another face up 
 symmetry: a torus upside down is a move), and each object's
 flips (the JSON's `by_goal` adds start and failed final distances, and flips onto a side against
 flips turning the object over, at 120 deg, and the share of failures that end with another face
-up than the goal's: for flips, the object never turned over; its `by_tilt` counts successes by the
-goal's tilt, 0-30 / 30-100 / 100-150 / 150-180 deg). Across runs: interquartile mean (IQM,
+up than the goal's: for flips, the object never turned over; for the failures on the goal's face,
+the median centroid offset and turn left, metres, and the share where the offset is the larger;
+its `by_tilt` counts successes by the goal's tilt, 0-30 / 30-100 / 100-150 / 150-180 deg). Across runs: interquartile mean (IQM,
 scipy trim_mean 0.25) with a 95% percentile bootstrap CI, over runs stratified by split with 4 or
 more runs per split; with fewer the IQM trims nothing (it is the mean of the runs) and the CI
 resamples episodes within each run.

@@ -126,7 +126,11 @@ def goal_kind_breakdown(results: Sequence) -> dict[str, dict]:
     failed flips press harder than the stop allows. ``failed_wrong_face``: the share of the kind's
     failures that end with another face up than the goal's (tilt left ≥ FLIP_TILT_DEG; None without
     failures): for a flip, the object never turned over (it failed to flip, not to place); for a
-    move, a push knocked it over."""
+    move, a push knocked it over. The failures that end on the goal's face are split by what is left
+    (``sim.contract.flow_split``): ``failed_on_face_position_led``, the share of them where placing
+    (the centroid's offset) is at least the turning left, and the medians of both, metres
+    (``median_failed_on_face_position_m`` / ``_rotation_m``; None without such failures, or in
+    records from before the split)."""
     out = {}
     kinds = {
         "move": lambda t: t < FLIP_TILT_DEG,
@@ -140,12 +144,21 @@ def goal_kind_breakdown(results: Sequence) -> dict[str, dict]:
             continue
         failed = [r.final_distance for r in rs if not r.success]
         failed_tilt = [r.final_tilt_deg for r in rs if not r.success]
+        on_face = [
+            (r.final_position_m, r.final_rotation_m)
+            for r in rs
+            if not r.success and r.final_tilt_deg < FLIP_TILT_DEG and r.final_position_m is not None
+        ]
+        pos, rot = np.asarray(on_face, dtype=float).reshape(-1, 2).T
         out[kind] = {
             "episodes": len(rs),
             "success_rate": float(np.mean([r.success for r in rs])),
             "mean_start_distance_m": float(np.mean([r.start_distance for r in rs])),
             "median_failed_final_distance_m": float(np.median(failed)) if failed else None,
             "failed_wrong_face": float(np.mean(np.asarray(failed_tilt) >= FLIP_TILT_DEG)) if failed else None,
+            "failed_on_face_position_led": float(np.mean(pos >= rot)) if on_face else None,
+            "median_failed_on_face_position_m": float(np.median(pos)) if on_face else None,
+            "median_failed_on_face_rotation_m": float(np.median(rot)) if on_face else None,
             **{
                 f"force_stops_{name}": float(np.mean([r.force_stops for r in group])) if group else None
                 for name, group in (

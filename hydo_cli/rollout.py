@@ -33,6 +33,10 @@ class EpisodeResult:
     force_stops: int = 0  # primitives the hand's contact-force stop ended (sim.primitive.FORCE_STOP_N)
     final_tilt_deg: float = 0.0  # the tilt left at the end: a failed flip still ≥ 30 never turned over
     idle: int = 0  # primitives that ran and left the object where it was (sim.env.IDLE_MOVE_M)
+    # the distance left at the end split into placing and turning, metres (sim.contract.flow_split);
+    # None where the env does not report it
+    final_position_m: float | None = None
+    final_rotation_m: float | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -104,6 +108,8 @@ def run_episodes(
                     force_stops=s["stops"],
                     final_tilt_deg=info.get("goal_tilt_deg", 0.0),
                     idle=s["idle"],
+                    final_position_m=info.get("final_position_m"),
+                    final_rotation_m=info.get("final_rotation_m"),
                 )
                 results[s["ep"]] = r
                 if on_episode is not None:

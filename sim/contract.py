@@ -178,6 +178,20 @@ def mean_flow_distance(points_world: np.ndarray, T_obj: np.ndarray, T_goal: np.n
     return float(np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2]).mean())
 
 
+def flow_split(points_world: np.ndarray, T_obj: np.ndarray, T_goal: np.ndarray) -> tuple[float, float]:
+    """``(position_m, rotation_m)``: the goal flow of object points (N, 3) at ``T_obj`` split into
+    what a pure translation would fix and what a turn about the points' centroid would fix, metres.
+
+    ``position_m`` is the norm of the mean flow (how far the centroid is from its place at the goal);
+    ``rotation_m`` is the mean norm of the flow left once that is taken out. They bound the success
+    metric: ``position_m ≤ mean_flow_distance ≤ position_m + rotation_m``. A failure that ends on the
+    goal's face with ``position_m ≥ rotation_m`` ran out of steps placing the object, not turning it.
+    """
+    flow = goal_flow(points_world, T_obj, T_goal).astype(np.float64)
+    shift = flow.mean(axis=0)
+    return float(np.linalg.norm(shift)), float(np.linalg.norm(flow - shift, axis=1).mean())
+
+
 def reward_and_success(points_world, T_obj, T_goal) -> tuple[float, bool, float]:
     """``(reward, success, distance)`` for object points (N, 3) at pose ``T_obj``."""
     d = mean_flow_distance(points_world, T_obj, T_goal)

@@ -19,6 +19,8 @@ Episode end
     start pose in collision) leaves the scene unchanged, counts as a step and is reported in
     ``info["rejected"]`` / ``info["reject_reason"]``. ``info["object_pose"]`` and ``info["goal_pose"]``
     hold the object pose after the primitive and the goal pose (position + quaternion wxyz, (7,)).
+    On the step that ends an episode, ``info["final_position_m"]`` and ``info["final_rotation_m"]``
+    split the distance left into placing and turning (``sim.contract.flow_split``).
 Arguments (``gymnasium.make("hydo/Bin-v0", ...)``)
     ``objects`` (split name, object name or mesh folder), ``goals`` (``planar`` | ``6d``), ``obs``
     (``mesh`` | ``render``), ``clutter`` (0, 1, 2 or 5 extra objects in the background cloud),
@@ -53,6 +55,7 @@ from sim.contract import (
     OBS_SOURCES,
     SymmetricGoals,
     build_observation,
+    flow_split,
     pose_matrix,
     reward_and_success,
 )
@@ -356,8 +359,12 @@ class BinEnv(gym.Env):
             "object_pose": pose_after,
             "goal_pose": np.concatenate(self.goal_pose),
         }
-        if self.task is not None and (terminated or truncated):
-            info["behaviour"] = self.task.behaviour(self._trajectory)
+        if terminated or truncated:
+            # where the episode ended, split into placing and turning (once an episode: not per step)
+            split = flow_split(self.scene.object_surface(), self.scene.object_T(), self.T_goal_eff)
+            info["final_position_m"], info["final_rotation_m"] = split
+            if self.task is not None:
+                info["behaviour"] = self.task.behaviour(self._trajectory)
         return self._observe(), float(reward), terminated, truncated, info
 
     def get_sim_state(self) -> dict:

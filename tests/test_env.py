@@ -252,6 +252,39 @@ def test_truncation_after_ten_primitives():
         _, _, term, trunc, info = env.step((0, np.zeros(3)))
         assert not term, "a null push cannot reach a goal that starts > 5 cm away"
     assert trunc and info["failure"] == "timeout"
+    # the distance left, split into placing and turning on the step that ends it (flow_split's bounds)
+    pos, rot = info["final_position_m"], info["final_rotation_m"]
+    assert pos <= info["distance"] + 1e-6 <= pos + rot + 2e-6
+
+
+def test_flow_split_separates_placing_from_turning():
+    """A pure translation is all placing, a turn about the centroid all turning; the two bound the
+    mean goal flow from both sides at any pose (the turn's flow written out by hand)."""
+    from scipy.spatial.transform import Rotation
+
+    from sim.contract import flow_split, mean_flow_distance, pose_matrix
+
+    rng = np.random.default_rng(0)
+    p_obj = rng.normal(scale=0.03, size=(400, 3))  # object-frame points, metres
+    T_obj = pose_matrix(np.array([0.05, -0.02, 0.03]), np.array([1.0, 0.0, 0.0, 0.0]))
+    points = p_obj + T_obj[:3, 3]
+    moved = T_obj.copy()
+    moved[:3, 3] += [0.04, 0.0, -0.03]  # 5 cm away, same orientation
+    assert flow_split(points, T_obj, moved) == pytest.approx((0.05, 0.0), abs=1e-7)  # float32 flow
+    centroid = points.mean(axis=0)
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("z", 40, degrees=True).as_matrix()
+    turn[:3, 3] = centroid - turn[:3, :3] @ centroid  # about the centroid
+    pos, rot = flow_split(points, T_obj, turn @ T_obj)
+    want = np.linalg.norm(points @ turn[:3, :3].T + turn[:3, 3] - points, axis=1).mean()
+    assert pos == pytest.approx(0.0, abs=1e-7) and rot == pytest.approx(want, rel=1e-5) and rot > 0.01
+    for _ in range(5):
+        T_goal = np.eye(4)
+        T_goal[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+        T_goal[:3, 3] = rng.uniform(-0.1, 0.1, 3)
+        pos, rot = flow_split(points, T_obj, T_goal)
+        d = mean_flow_distance(points, T_obj, T_goal)
+        assert pos <= d + 1e-6 <= pos + rot + 2e-6
 
 
 def test_vector_env_steps_a_batch_in_one_process():

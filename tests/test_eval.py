@@ -42,7 +42,7 @@ def test_failure_reasons_count_timeouts_with_refused_primitives_twice():
 
 
 def test_goal_kinds_split_moves_from_flips_at_30_degrees():
-    def tilted(success, tilt, final, force_stops=0, final_tilt=0.0):
+    def tilted(success, tilt, final, force_stops=0, final_tilt=0.0, split=(None, None)):
         return EpisodeResult(
             "cube",
             success,
@@ -56,6 +56,8 @@ def test_goal_kinds_split_moves_from_flips_at_30_degrees():
             tilt,
             force_stops,
             final_tilt,
+            final_position_m=split[0],
+            final_rotation_m=split[1],
         )
 
     results = [tilted(True, 0.0, 0.01), tilted(False, 29.0, 0.05), tilted(True, 90.0, 0.02)]
@@ -74,6 +76,19 @@ def test_goal_kinds_split_moves_from_flips_at_30_degrees():
     assert kinds["move"]["failed_wrong_face"] == 0.0  # the failed move ended on its own face
     assert goal_kind_breakdown(results[:1])["move"]["failed_wrong_face"] is None  # no failures
     assert set(goal_kind_breakdown(results[:1])) == {"move"}  # planar goals: no flip row
+    # failures on the goal's face, split into placing and turning; records from before have no split
+    assert kinds["flip"]["failed_on_face_position_led"] is None
+    assert kinds["move"]["median_failed_on_face_position_m"] is None
+    split = [
+        tilted(False, 90.0, 0.06, final_tilt=3.0, split=(0.05, 0.02)),  # placing left
+        tilted(False, 180.0, 0.05, final_tilt=1.0, split=(0.01, 0.045)),  # turning left
+        tilted(False, 90.0, 0.07, final_tilt=5.0, split=(0.06, 0.01)),
+        tilted(False, 90.0, 0.20, final_tilt=90.0, split=(0.01, 0.20)),  # never flipped: not on face
+    ]
+    flip = goal_kind_breakdown(split)["flip"]
+    assert flip["failed_on_face_position_led"] == pytest.approx(2 / 3)
+    assert flip["median_failed_on_face_position_m"] == pytest.approx(0.05)
+    assert flip["median_failed_on_face_rotation_m"] == pytest.approx(0.02)
     # the same episodes by the goal's tilt band: a band's lower edge belongs to it, 180 to the last
     results += [tilted(True, 30.0, 0.01), tilted(True, 100.0, 0.01), tilted(False, 150.0, 0.09)]
     assert tilt_bands(results) == {
