@@ -61,9 +61,9 @@ flips (the JSON's `by_goal` adds start and failed final distances, and flips ont
 flips turning the object over, at 120 deg, and the share of failures that end with another face
 up than the goal's: for flips, the object never turned over; for the failures on the goal's face,
 the median centroid offset and turn left, metres, and the share where the offset is the larger;
-its `by_tilt` counts successes by the goal's tilt, 0-30 / 30-100 / 100-150 / 150-180 deg). Across runs: interquartile mean (IQM,
-scipy trim_mean 0.25) with a 95% percentile bootstrap CI, over runs stratified by split with 4 or
-more runs per split; with fewer the IQM trims nothing (it is the mean of the runs) and the CI
+its `by_tilt` counts successes by the goal's tilt, 0-30 / 30-100 / 100-150 / 150-180 deg).
+Across runs: interquartile mean (IQM, scipy trim_mean 0.25) with a 95% percentile bootstrap CI,
+over runs stratified by split with 4 or more runs per split; with fewer the IQM trims nothing (it is the mean of the runs) and the CI
 resamples episodes within each run.
 
 --compare groups runs by method (the algo in the run or manifest; baselines by name) and evaluates
