@@ -126,8 +126,8 @@ def goal_kind_breakdown(results: Sequence) -> dict[str, dict]:
     failed flips press harder than the stop allows. ``failed_wrong_face``: the share of the kind's
     failures that end with another face up than the goal's (tilt left ≥ FLIP_TILT_DEG; None without
     failures): for a flip, the object never turned over (it failed to flip, not to place); for a
-    move, a push knocked it over. The failures that end on the goal's face are split by what is left
-    (``sim.contract.flow_split``): ``failed_on_face_position_led``, the share of them where placing
+    move, a push knocked it over. The failures that end on the goal's face (``failed_on_face``, a
+    count) are split by what is left (``sim.contract.flow_split``): ``failed_on_face_position_led``, the share of them where placing
     (the centroid's offset) is at least the turning left, and the medians of both, metres
     (``median_failed_on_face_position_m`` / ``_rotation_m``; None without such failures, or in
     records from before the split)."""
@@ -156,6 +156,7 @@ def goal_kind_breakdown(results: Sequence) -> dict[str, dict]:
             "mean_start_distance_m": float(np.mean([r.start_distance for r in rs])),
             "median_failed_final_distance_m": float(np.median(failed)) if failed else None,
             "failed_wrong_face": float(np.mean(np.asarray(failed_tilt) >= FLIP_TILT_DEG)) if failed else None,
+            "failed_on_face": sum(not r.success and r.final_tilt_deg < FLIP_TILT_DEG for r in rs),
             "failed_on_face_position_led": float(np.mean(pos >= rot)) if on_face else None,
             "median_failed_on_face_position_m": float(np.median(pos)) if on_face else None,
             "median_failed_on_face_rotation_m": float(np.median(rot)) if on_face else None,

@@ -86,6 +86,7 @@ def test_goal_kinds_split_moves_from_flips_at_30_degrees():
         tilted(False, 90.0, 0.20, final_tilt=90.0, split=(0.01, 0.20)),  # never flipped: not on face
     ]
     flip = goal_kind_breakdown(split)["flip"]
+    assert flip["failed_on_face"] == 3 and kinds["flip"]["failed_on_face"] == 1
     assert flip["failed_on_face_position_led"] == pytest.approx(2 / 3)
     assert flip["median_failed_on_face_position_m"] == pytest.approx(0.05)
     assert flip["median_failed_on_face_rotation_m"] == pytest.approx(0.02)
