@@ -18,7 +18,9 @@ started) and the last one, so start-up and the random-action warm-up are not cou
 off (``eval_every = 0``) so that both runs spend their time on the loop alone. Prints a table;
 ``--json FILE`` writes ``{"default": {...}, "serial": {...}, "env_steps_speedup", "updates_speedup",
 "meta"}`` where each run has ``env_steps_per_hour``, ``updates_per_hour`` and
-``updates_per_env_step`` (the update-to-data ratio, a setting: equal in both).
+``updates_per_env_step`` (the update-to-data ratio, a setting: equal in both) and ``sync_wait_share``
+(the mean share of the window the workers sat at the gradient syncs and exchanges, the lock-step's
+idle time, from ``metrics.jsonl``; None for one worker or for code that does not log it).
 
 ``--config FILE`` takes this tree's layouts' settings from a training config, as ``hydo train --config
 FILE`` would: every key but the ones the bench sets itself (run length, evaluation, checkpoints,
@@ -155,6 +157,8 @@ def run_loop(name: str, args: argparse.Namespace, folder: Path, src: Path = ROOT
     dt = b["wall_s"] - a["wall_s"]
     steps, updates = b["env_steps"] - a["env_steps"], b["updates"] - a["updates"]
     batch_size = json.loads((run / "config.json").read_text())["batch_size"]
+    # the workers' idle share in the lock-step (rows of code that logs it, with more than one worker)
+    waits = [row["sync_wait_share"] for row in learning[1:] if row.get("sync_wait_share") is not None]
     return {
         "command": " ".join(cmd[2:]),
         "window_s": dt,
@@ -165,6 +169,7 @@ def run_loop(name: str, args: argparse.Namespace, folder: Path, src: Path = ROOT
         "batch_size": batch_size,
         "sample_gradients_per_hour": updates * batch_size / dt * 3600,
         "updates_per_env_step": updates / steps,
+        "sync_wait_share": statistics.mean(waits) if waits else None,
         "total_wall_s": time.perf_counter() - t0,
     }
 
@@ -214,9 +219,11 @@ def main() -> None:
             finally:
                 remove_checkout(src)
             for name, rs in runs.items():
+                waits = [r["sync_wait_share"] for r in rs if r["sync_wait_share"] is not None]
                 results[name] = {
                     **rs[0],
                     **{key: statistics.median(r[key] for r in rs) for key in RATES},
+                    "sync_wait_share": statistics.median(waits) if waits else None,
                     "window_s": sum(r["window_s"] for r in rs),
                 }
             results["runs"] = runs
@@ -247,7 +254,16 @@ def main() -> None:
     from rich.table import Table
 
     table = Table(title=f"training loop, {args.goals} goals, {args.seconds:.0f} s per run")
-    for col in ("layout", "env steps/h", "updates/h", "sample-gradients/h", "updates/env step", "window s"):
+    cols = (
+        "layout",
+        "env steps/h",
+        "updates/h",
+        "sample-gradients/h",
+        "updates/env step",
+        "sync wait",
+        "window s",
+    )
+    for col in cols:
         table.add_column(col, justify="right")
     for name in names:
         r = results[name]
@@ -257,6 +273,7 @@ def main() -> None:
             f"{r['updates_per_hour']:,.0f}",
             f"{r['sample_gradients_per_hour']:,.0f}",
             f"{r['updates_per_env_step']:.3f}",
+            "-" if r["sync_wait_share"] is None else f"{r['sync_wait_share']:.1%}",
             f"{r['window_s']:.0f}",
         )
     table.add_row(
@@ -264,6 +281,7 @@ def main() -> None:
         f"{results['env_steps_speedup']:.2f}×",
         f"{results['updates_speedup']:.2f}×",
         f"{results['sample_gradients_speedup']:.2f}×",
+        "",
         "",
         "",
     )

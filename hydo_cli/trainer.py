@@ -177,6 +177,8 @@ class Trainer:
         self.recent_return: deque[float] = deque(maxlen=100)
         self.stop_reason = 0
         self.group: WorkerGroup | None = None
+        # every worker's seconds waiting at the group's barriers so far, as of the last exchange
+        self.sync_wait_s = np.zeros(self.world)
         # Replay on disk: a snapshot (replay.npz) plus one segment per later checkpoint (save()).
         self.replay_seq = 0  # saves of this worker's shard so far (snapshots and segments)
         self.replay_logged = 0  # transitions written as segments since the snapshot
@@ -350,7 +352,7 @@ class Trainer:
             return
         if self.resumed:
             self.check_resumable(fresh_replay)
-        spec = make_group(self.world, self.agent.num_parameters() + 2, 2 + 2 * len(self.envs))
+        spec = make_group(self.world, self.agent.num_parameters() + 2, 3 + 2 * len(self.envs))
         ctx = multiprocessing.get_context("spawn")
         cfg = dataclasses.asdict(self.cfg)
         workers = [
@@ -378,20 +380,20 @@ class Trainer:
                 w.join(timeout=60)
 
     def _exchange(self, stop: int, finished: list[tuple[float, float]]) -> int:
-        """Once per step, every worker: agree on stopping (the largest reason) and pool the episodes
-        that ended (``(success, return)`` each) into the recent-success window. Returns the reason."""
+        """Once per step, every worker: agree on stopping (the largest reason), pool the episodes
+        that ended (``(success, return)`` each) into the recent-success window and share the seconds
+        each worker has waited at the barriers (``sync_wait_s``). Returns the reason."""
         if self.group is None:
             rows = [(stop, finished)]
         else:
             k = len(self.envs)  # at most one episode per env per step
-            row = np.zeros(2 + 2 * k)
-            row[0], row[1] = stop, len(finished)
+            row = np.zeros(3 + 2 * k)
+            row[0], row[1], row[2] = stop, len(finished), self.group.wait_s
             for j, (succ, ret) in enumerate(finished):
-                row[2 + j], row[2 + k + j] = succ, ret
-            rows = [
-                (int(r[0]), [(r[2 + j], r[2 + k + j]) for j in range(int(r[1]))])
-                for r in self.group.gather(row)
-            ]
+                row[3 + j], row[3 + k + j] = succ, ret
+            gathered = self.group.gather(row)  # (world, 3 + 2k)
+            self.sync_wait_s = gathered[:, 2].copy()
+            rows = [(int(r[0]), [(r[3 + j], r[3 + k + j]) for j in range(int(r[1]))]) for r in gathered]
         for _, eps in rows:
             for succ, ret in eps:
                 self.episodes += 1
@@ -420,6 +422,7 @@ class Trainer:
         last_metrics: dict[str, float] = {}
         t_start = time.perf_counter() - self.wall_s
         updates_at_log, t_log = self.updates, time.perf_counter()
+        wait_at_log = self.sync_wait_s.copy()
         update_debt = 0.0
         next_eval = (self.env_steps // cfg.eval_every + 1) * cfg.eval_every if cfg.eval_every else math.inf
         next_ckpt = (self.env_steps // cfg.checkpoint_every + 1) * cfg.checkpoint_every
@@ -512,10 +515,13 @@ class Trainer:
                     # 4. log, evaluate (worker 0), checkpoint (every worker)
                     now = time.perf_counter()
                     if self.env_steps >= next_log:
-                        ups = (self.updates - updates_at_log) / max(now - t_log, 1e-9)
-                        updates_at_log, t_log = self.updates, now
+                        dt_log = max(now - t_log, 1e-9)
+                        ups = (self.updates - updates_at_log) / dt_log
+                        # the share of the interval the workers sat at the barriers (their mean)
+                        waited = float(np.mean(self.sync_wait_s - wait_at_log)) / dt_log
+                        updates_at_log, t_log, wait_at_log = self.updates, now, self.sync_wait_s.copy()
                         if lead:
-                            row = self._metrics_row(now - t_start, ups, last_metrics)
+                            row = self._metrics_row(now - t_start, ups, waited, last_metrics)
                             metrics_log.write(row)
                             left = budget_s - (now - t_start)
                             succ = row["success_recent"]
@@ -563,7 +569,7 @@ class Trainer:
         if tb is not None:
             tb.close()
 
-    def _metrics_row(self, wall_s: float, ups: float, last_metrics: dict[str, float]) -> dict:
+    def _metrics_row(self, wall_s: float, ups: float, waited: float, last_metrics: dict[str, float]) -> dict:
         return {
             "env_steps": self.env_steps,
             "updates": self.updates,
@@ -571,6 +577,9 @@ class Trainer:
             "wall_s": wall_s,
             "updates_per_s": ups,
             "workers": self.world,
+            # the lock-step's idle time: the mean share of the last log interval that the workers
+            # spent waiting at gradient syncs and exchanges (None with one worker: nothing to wait for)
+            "sync_wait_share": waited if self.world > 1 else None,
             "precision": self.precision,
             # peak resident memory of this process so far (Linux reports KiB)
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,

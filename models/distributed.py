@@ -18,6 +18,7 @@ took ~1.3 ms per all-reduce of the ~60k gradients; a write into a shared tensor,
 from __future__ import annotations
 
 import multiprocessing
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -62,6 +63,14 @@ class WorkerGroup:
         self.rank, self.world, self.spec = rank, spec.world, spec
         self._k_grads = 0
         self._k_rows = 0
+        #: Seconds this worker has spent waiting at the group's barriers: the lock-step's idle time
+        #: (the faster worker waits there for the slower one's env steps or evaluation).
+        self.wait_s = 0.0
+
+    def _wait(self) -> None:
+        t = time.perf_counter()
+        self.spec.barrier.wait()
+        self.wait_s += time.perf_counter() - t
 
     def average_gradients(self, params: list[torch.Tensor]) -> None:
         """Replace each ``p.grad`` by its mean over the workers.
@@ -75,7 +84,7 @@ class WorkerGroup:
         slots = self.spec.grads[self._k_grads % 2]  # (world, n_grads)
         self._k_grads += 1
         torch.cat([g.reshape(-1) for g in grads], out=slots[self.rank, :n])
-        self.spec.barrier.wait()
+        self._wait()
         mean = slots[:, :n].sum(0) / self.world
         offset = 0
         for g in grads:
@@ -88,11 +97,11 @@ class WorkerGroup:
         slots = self.spec.rows[self._k_rows % 2]  # (world, row_size)
         self._k_rows += 1
         slots[self.rank, :k] = torch.from_numpy(np.asarray(row, dtype=np.float64))
-        self.spec.barrier.wait()
+        self._wait()
         return slots[:, :k].numpy().copy()
 
     def barrier(self) -> None:
-        self.spec.barrier.wait()
+        self._wait()
 
     def abort(self) -> None:
         """On failure: break the barrier, so a worker waiting at it stops instead of hanging."""

@@ -110,6 +110,25 @@ CASES = {
             and d["workers"][0]["update_lines"][0]["line"] == "models/algos.py:673"
         ),
     ),
+    "worker_balance.py": (
+        ["--seconds", "3", "--envs", "2", "--workers", "2"],
+        lambda d: (
+            d["iterations"] >= 3
+            and d["meta"]["contacts"] == SHIPPED_6D_CONTACTS  # the model's own contacts
+            # two workers of one env each: a worker's env time is one step's, and the spread, the
+            # mean |E_0 - E_1|, is at most the mean E_0 + E_1
+            and d["worker_env_ms"] == pytest.approx(d["env_step_ms"])
+            and 0 < d["spread_ms"] <= 2 * d["env_step_ms"]
+            and set(d["predictors"])
+            == {
+                "planned controls",
+                "object",
+                "object x planned controls",
+                "object x physics steps (after)",
+                "previous iteration",
+            }
+        ),
+    ),
     "trainer.py": (
         ["--seconds", "15", "--goals", "planar", "--objects", "cube", "--log-every", "8"]
         + ["--config", str(ROOT / "tests" / "data" / "bench-trainer.toml")]  # batch_size = 8
@@ -125,6 +144,9 @@ CASES = {
             # the config's settings reach both of this tree's layouts; its run length does not
             and d["default"]["batch_size"] == d["serial"]["batch_size"] == 8
             and d["meta"]["config_settings"] == {"batch_size": 8, "agent": {"policy_delay": 1}}
+            # two workers wait at their syncs for some share of the time; one has none to wait at
+            and 0.0 <= d["default"]["sync_wait_share"] <= 1.0
+            and d["serial"]["sync_wait_share"] is None
         ),
     ),
 }

@@ -54,6 +54,9 @@ def test_train_resume_eval_export(tmp_path):
     metrics = _lines(run / "metrics.jsonl")
     assert metrics[-1]["env_steps"] >= 48 and metrics[-1]["updates"] > 0
     assert "peak_rss_mb" in metrics[-1]
+    # two workers (the default): each row says what share of its interval they waited at the syncs
+    assert metrics[-1]["workers"] == 2
+    assert all(0.0 <= m["sync_wait_share"] <= 1.0 for m in metrics)
     evals = _lines(run / "eval.jsonl")
     assert [e["env_steps"] for e in evals][:2] == [24, 48] and all(e["episodes"] == 2 for e in evals)
     # TensorBoard mirror (tensorboard is in the test extra): the eval success rate per evaluation

@@ -3,6 +3,7 @@ end every update with the weights one agent gets from the whole batch."""
 
 import copy
 import threading
+import time
 
 import torch
 from learner_util import SMALL
@@ -55,3 +56,22 @@ def test_two_workers_on_half_batches_take_the_full_batch_step():
     for t in threads:
         t.join(timeout=60)
     assert rows[0].tolist() == rows[1].tolist() == [[0.0, 10.0], [1.0, 11.0]]
+
+
+def test_a_worker_counts_the_time_it_waits_for_a_late_one():
+    spec = make_group(2, 4, 2, timeout_s=60)
+    groups = [WorkerGroup(rank, spec) for rank in range(2)]
+
+    def late(rank):
+        if rank == 1:
+            time.sleep(0.3)  # worker 1 arrives 0.3 s after worker 0
+        groups[rank].gather([float(rank)])
+        groups[rank].barrier()
+
+    threads = [threading.Thread(target=late, args=(r,)) for r in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert groups[0].wait_s >= 0.25  # worker 0 sat at the gather's barrier for worker 1
+    assert groups[1].wait_s < groups[0].wait_s - 0.2  # the late one hardly waited
