@@ -28,8 +28,9 @@ Usage::
 
     python bench/worker_balance.py --model models/hydo-cm-6d --seconds 150 --json runs/bench-balance.json
 
-JSON: ``{"iterations", "env_step_ms", "worker_env_ms", "spread_ms", "predictors": {name:
-{"r2_per_step", "residual_spread_ms"}}, "meta"}``.
+JSON: ``{"iterations", "env_step_ms", "env_step_std_ms", "worker_env_ms", "spread_ms",
+"planned_controls": [mean, std], "physics_steps": [mean, std], "us_per_physics_step": {object: µs},
+"predictors": {name: {"r2_per_step", "residual_spread_ms"}}, "meta"}``.
 """
 
 from __future__ import annotations
@@ -106,10 +107,12 @@ def analyse(data: dict, workers: int) -> dict:
     t, obj = data["time"], data["object"]
     mean_time = np.zeros_like(t)
     per_step = np.zeros_like(t)  # the object's seconds per physics step
+    us_per_physics_step = {}
     for name in sorted(set(obj.ravel())):
         m = obj == name
         mean_time[m] = t[m].mean()
         per_step[m] = t[m].sum() / max(data["physics"][m].sum(), 1)
+        us_per_physics_step[str(name)] = 1e6 * float(per_step[m][0])
     features = {
         "planned controls": data["controls"],
         "object": mean_time,
@@ -142,6 +145,10 @@ def analyse(data: dict, workers: int) -> dict:
         "env_step_std_ms": 1e3 * float(t.std()),
         "worker_env_ms": 1e3 * float(per_worker.mean()),
         "spread_ms": 1e3 * float(spread(t, workers).mean()),
+        "planned_controls": [float(data["controls"].mean()), float(data["controls"].std())],
+        "physics_steps": [float(data["physics"].mean()), float(data["physics"].std())],
+        # an env step's time per physics step (observation and reward included), by object
+        "us_per_physics_step": dict(sorted(us_per_physics_step.items(), key=lambda kv: kv[1])),
         "predictors": result,
     }
 
@@ -178,6 +185,16 @@ def main() -> None:
         f"{results['iterations']} iterations of {args.envs} envs over {args.workers} workers: env step "
         f"{results['env_step_ms']:.1f} ± {results['env_step_std_ms']:.1f} ms, per worker and iteration "
         f"{results['worker_env_ms']:.1f} ms, spread (the wait at the first sync) {results['spread_ms']:.1f} ms"
+    )
+    cost = list(results["us_per_physics_step"].items())
+    Console().print(
+        "physics steps per env step: planned {:.0f} ± {:.0f}, taken {:.0f} ± {:.0f}; µs per physics "
+        "step, cheapest {}, dearest {}".format(
+            *results["planned_controls"],
+            *results["physics_steps"],
+            ", ".join(f"{k} {v:.0f}" for k, v in cost[:3]),
+            ", ".join(f"{k} {v:.0f}" for k, v in cost[-3:]),
+        )
     )
     table = Table(title="what a deterministic split of the update rows could balance")
     for col in ("predictor", "R² per step", "spread left, ms"):

@@ -119,6 +119,8 @@ CASES = {
             # mean |E_0 - E_1|, is at most the mean E_0 + E_1
             and d["worker_env_ms"] == pytest.approx(d["env_step_ms"])
             and 0 < d["spread_ms"] <= 2 * d["env_step_ms"]
+            and d["us_per_physics_step"]
+            and all(v > 0 for v in d["us_per_physics_step"].values())
             and set(d["predictors"])
             == {
                 "planned controls",
