@@ -49,14 +49,20 @@ def run_episodes(
     seed: int = 0,
     on_frame: Callable[[int, np.ndarray], None] | None = None,
     on_episode: Callable[[EpisodeResult], None] | None = None,
+    shard: tuple[int, int] = (0, 1),
 ) -> list[EpisodeResult]:
     """Run ``n_episodes`` spread over ``envs`` (stepped in lock-step, one batched decision per step).
 
     ``on_frame(episode_index, rgb)`` is called after reset and every step when given (video).
+    ``shard = (rank, world)`` plays only episodes ``rank, rank + world, …`` of the ``n_episodes``
+    (each with the seed it has in the whole set), so ``world`` processes can share one evaluation.
     Results come back in episode order.
     """
+    rank, world = shard
+    if not 0 <= rank < world:
+        raise ValueError(f"`shard` must be (rank, world) with 0 <= rank < world. Got {shard}.")
     results: dict[int, EpisodeResult] = {}
-    next_ep = 0
+    next_ep = rank
     slots: list[dict | None] = [None] * len(envs)
 
     def start(k: int) -> None:
@@ -77,7 +83,7 @@ def run_episodes(
         }
         if on_frame is not None:
             on_frame(next_ep, envs[k].render())
-        next_ep += 1
+        next_ep += world
 
     for k in range(len(envs)):
         start(k)
@@ -115,7 +121,7 @@ def run_episodes(
                 if on_episode is not None:
                     on_episode(r)
                 start(k)
-    return [results[i] for i in range(n_episodes)]
+    return [results[i] for i in range(rank, n_episodes, world)]
 
 
 def summarize(results: Sequence[EpisodeResult]) -> dict:

@@ -6,7 +6,8 @@ makes one batched decision per step, then takes ``updates_per_step × n_envs`` g
 ``batch_size / workers`` transitions of its shard, averaging gradients with the others before every
 optimiser step. The update-to-data ratio is a setting, the same for any number of workers: every
 worker does the same number of updates per env step, by construction, not by timing. Worker 0 logs,
-evaluates and writes ``checkpoint.pt``; worker ``r`` > 0 saves ``replay-r.npz`` and ``worker-r.pt``
+writes ``checkpoint.pt``; every worker plays its share of each evaluation's episodes, and worker 0
+logs their results; worker ``r`` > 0 saves ``replay-r.npz`` and ``worker-r.pt``
 (its RNG states) beside it. ``workers=1`` is the serial loop (CleanRL-style, top to bottom).
 """
 
@@ -33,7 +34,7 @@ from hydo_cli.config import CHECKPOINT_FORMAT, TrainConfig, agent_config
 from hydo_cli.envs import make_envs
 from hydo_cli.errors import HydoError
 from hydo_cli.policies import agent_policy
-from hydo_cli.rollout import run_episodes, summarize
+from hydo_cli.rollout import run_episodes
 from models.algos import AgentConfig, HybridAgent
 from models.checkpoint import (
     CheckpointError,
@@ -331,19 +332,37 @@ class Trainer:
 
     # --- the loop --------------------------------------------------------------------------------
     def evaluate(self) -> dict:
+        """Every worker: play this worker's share of the ``eval_episodes`` (episodes ``rank``,
+        ``rank + workers``, …: the same seeded episodes whatever the number of workers) on its envs,
+        then pool every worker's results. Returns ``episodes``, ``success_rate``, ``mean_return``.
+
+        Shared, so that an evaluation takes ``1 / workers`` of the time and no worker sits at the next
+        sync while another evaluates. The replicas hold the same weights, so the policy is the same."""
         policy = agent_policy(
-            self.agent, "eval", torch.Generator().manual_seed(self.cfg.seed + EVAL_SEED_OFFSET)
+            self.agent, "eval", torch.Generator().manual_seed(self.cfg.seed + EVAL_SEED_OFFSET + self.rank)
         )
         for env in self.envs:  # evaluate on goals as drawn, whatever mix training uses
             env.flip_share = None
         try:
             results = run_episodes(
-                self.envs, policy, self.cfg.eval_episodes, seed=self.cfg.seed + EVAL_SEED_OFFSET
+                self.envs,
+                policy,
+                self.cfg.eval_episodes,
+                seed=self.cfg.seed + EVAL_SEED_OFFSET,
+                shard=(self.rank, self.world),
             )
         finally:
             for env in self.envs:
                 env.flip_share = self.cfg.flip_share
-        return summarize(results)
+        row = np.array(
+            [len(results), sum(r.success for r in results), sum(r.episode_return for r in results)], float
+        )
+        n, successes, returns = (self.group.gather(row) if self.group is not None else row[None]).sum(0)
+        return {
+            "episodes": int(n),
+            "success_rate": successes / n if n else 0.0,
+            "mean_return": returns / n if n else 0.0,
+        }
 
     def run(self, fresh_replay: bool = False) -> None:
         """Worker 0: start the other workers, train, and report (``hydo train`` calls this)."""
@@ -512,7 +531,7 @@ class Trainer:
                                 last_metrics = self.agent.update(sampled)
                             self.updates += 1
                             update_debt -= 1.0
-                    # 4. log, evaluate (worker 0), checkpoint (every worker)
+                    # 4. log (worker 0), evaluate and checkpoint (every worker)
                     now = time.perf_counter()
                     if self.env_steps >= next_log:
                         dt_log = max(now - t_log, 1e-9)
@@ -533,12 +552,11 @@ class Trainer:
                             )
                         next_log += cfg.log_every
                     if self.env_steps >= next_eval:
-                        if lead:
-                            self._eval_and_log(eval_log, t_start, progress)
-                            # it played its own episodes on these envs: the interrupted ones end here
-                            obs = start_episodes()
-                            self.buffer.end_episodes()
-                            ep_return[:] = 0.0
+                        self._eval_and_log(eval_log, t_start, progress)
+                        # it played its own episodes on these envs: the interrupted ones end here
+                        obs = start_episodes()
+                        self.buffer.end_episodes()
+                        ep_return[:] = 0.0
                         next_eval += cfg.eval_every
                     if self.env_steps >= next_ckpt:
                         self.wall_s = time.perf_counter() - t_start
@@ -552,6 +570,10 @@ class Trainer:
                 tb.flush()
         self.wall_s = time.perf_counter() - t_start
         self.save()
+        # a last evaluation of the final weights unless the loop just made one (every worker: the
+        # stop reason is agreed, so all of them take the same branch)
+        if self.stop_reason != STOP_SIGNAL and (not cfg.eval_every or self.env_steps % cfg.eval_every):
+            self._eval_and_log(eval_log, t_start, progress)
         if not lead:
             return
         if self.stop_reason == STOP_SIGNAL:
@@ -560,8 +582,6 @@ class Trainer:
                 f"`hydo train --resume {self.run_dir}`"
             )
             raise SystemExit(130)
-        if not cfg.eval_every or self.env_steps % cfg.eval_every:
-            self._eval_and_log(eval_log, t_start, progress)
         progress.console.print(
             f"done: {self.env_steps} env steps, {self.updates} updates in "
             f"{self.wall_s / 60:.1f} min; run in {self.run_dir}"
@@ -590,15 +610,21 @@ class Trainer:
             **{k: float(v) for k, v in last_metrics.items()},
         }
 
-    def _eval_and_log(self, eval_log: JsonlLog, t_start: float, progress) -> None:
+    def _eval_and_log(self, eval_log: JsonlLog | None, t_start: float, progress) -> None:
+        """Every worker evaluates (``evaluate``); worker 0 writes the row and prints it."""
+        t_eval = time.perf_counter()
         summary = self.evaluate()
+        if eval_log is None:
+            return
+        now = time.perf_counter()
         row = {
             "env_steps": self.env_steps,
             "updates": self.updates,
-            "wall_s": time.perf_counter() - t_start,
+            "wall_s": now - t_start,
             "success_rate": summary["success_rate"],
             "mean_return": summary["mean_return"],
             "episodes": summary["episodes"],
+            "eval_s": now - t_eval,  # the evaluation's own wall time (training stood still for it)
         }
         eval_log.write(row)
         progress.console.print(

@@ -479,3 +479,26 @@ def test_a_run_reports_its_training_budget_and_table_one_shows_it():
         "per_object": {},
     }
     assert "## Training budgets" in markdown_report({**full, "runs": [one]})
+
+
+def test_shards_of_an_evaluation_play_the_same_episodes_as_the_whole():
+    # training's evaluation is shared by its workers: worker r plays episodes r, r + world, ... of
+    # the same seeded set, so two shards together are the whole set, episode for episode
+    from hydo_cli.envs import make_envs
+    from hydo_cli.rollout import baseline_policy, run_episodes
+
+    envs = make_envs("train", "6d", 0, "mesh", 2, 32, 32)
+
+    def play(shard):
+        return run_episodes(envs, baseline_policy("random", 0), 5, seed=4, shard=shard)
+
+    def start(r):
+        return (r.object, round(r.start_distance, 9), round(r.goal_tilt_deg, 6))
+
+    whole = [start(r) for r in play((0, 1))]
+    assert len(set(whole)) > 1  # different objects and goals, so a wrong index would show
+    assert [start(r) for r in play((0, 2))] == whole[0::2]
+    assert [start(r) for r in play((1, 2))] == whole[1::2]
+    assert [start(r) for r in play((3, 4))] == [whole[3]]  # of 5 episodes, only episode 3
+    with pytest.raises(ValueError, match="shard"):
+        play((2, 2))

@@ -59,6 +59,8 @@ def test_train_resume_eval_export(tmp_path):
     assert all(0.0 <= m["sync_wait_share"] <= 1.0 for m in metrics)
     evals = _lines(run / "eval.jsonl")
     assert [e["env_steps"] for e in evals][:2] == [24, 48] and all(e["episodes"] == 2 for e in evals)
+    # both workers played one of the 2 episodes; the row pools them and says how long it took
+    assert all(e["eval_s"] > 0 for e in evals)
     # TensorBoard mirror (tensorboard is in the test extra): the eval success rate per evaluation
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
