@@ -108,7 +108,6 @@ def main() -> None:
     table.add_row(f"rebuild: snapshot + {args.segments} segments", "", f"{rebuild_s:.2f}")
     Console().print(table)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.json, json.dumps(results, indent=2))
 
 

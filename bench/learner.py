@@ -239,7 +239,6 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError:
         pass
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.json, json.dumps(results, indent=2) + "\n")
     return 0
 
@@ -303,7 +302,6 @@ def compare_with_baseline(args: argparse.Namespace, argv: list[str]) -> int:
             flush=True,
         )
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.json, json.dumps(results, indent=2) + "\n")
     return 0
 

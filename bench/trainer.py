@@ -287,7 +287,6 @@ def main() -> None:
     )
     Console().print(table)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.json, json.dumps(results, indent=2))
 
 

@@ -204,7 +204,6 @@ def main() -> None:
         table.add_row(name, r2, f"{r['residual_spread_ms']:.1f}")
     Console().print(table)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.json, json.dumps(results, indent=2))
 
 
