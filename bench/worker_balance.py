@@ -1,13 +1,13 @@
 """How unevenly the training workers' env steps load the cores, and how much of it a deterministic
 prediction could move.
 
-Data-parallel training (``hydo_cli.trainer``) runs the workers in lock-step: each steps its
-``n_envs / workers`` envs, then every update's gradients are averaged, so at the first gradient sync
+Data-parallel training (``hydo_cli.trainer``, two workers on two cores) runs the workers in lock-step:
+each steps its ``n_envs / 2`` envs, then every update's gradients are averaged, so at the first sync
 of each iteration the worker whose pushes were cheaper waits for the other. This bench plays a
 policy the way a training iteration does (one batched decision for all envs, then every env steps
-once; env ``k`` belongs to worker ``k // (n_envs / workers)``) in one process and times every env
+once; env ``k`` belongs to worker ``k // (n_envs / 2)``) in one process and times every env
 step. Per iteration it reports each worker's env time ``E_w`` and the spread ``max E − min E``: the
-time the faster workers wait at that sync.
+time the faster worker waits at that sync.
 
 To move update rows from the slower worker to the faster one *deterministically* (the same run from
 the same seed), the split must be fixed from numbers known before the pushes run, or from earlier
@@ -97,13 +97,15 @@ def play(args: argparse.Namespace) -> dict[str, np.ndarray]:
     return out
 
 
-def spread(per_env: np.ndarray, workers: int) -> np.ndarray:
-    """``(iterations, envs)`` → per iteration, the slowest worker's sum minus the fastest's."""
-    per_worker = per_env.reshape(len(per_env), workers, -1).sum(-1)
-    return per_worker.max(1) - per_worker.min(1)
+WORKERS = 2  # the trainer's default layout, one worker per core
 
 
-def analyse(data: dict, workers: int) -> dict:
+def worker_sums(per_env: np.ndarray) -> np.ndarray:
+    """``(iterations, envs)`` → ``(iterations, WORKERS)``: each worker's envs summed."""
+    return per_env.reshape(len(per_env), WORKERS, -1).sum(-1)
+
+
+def analyse(data: dict) -> dict:
     t, obj = data["time"], data["object"]
     mean_time = np.zeros_like(t)
     per_step = np.zeros_like(t)  # the object's seconds per physics step
@@ -119,17 +121,17 @@ def analyse(data: dict, workers: int) -> dict:
         "object x planned controls": per_step * data["controls"],
         "object x physics steps (after)": per_step * data["physics"],
     }
-    per_worker = t.reshape(len(t), workers, -1).sum(-1)  # (iterations, workers)
-    # the balance moves work from the slowest to the fastest worker: with two workers the spread is
-    # |E_0 - E_1|, and a prediction P leaves |(E_0 - E_1) - (P_0 - P_1)|
-    d = per_worker[:, 0] - per_worker[:, 1:].mean(1) if workers > 1 else np.zeros(len(t))
+    per_worker = worker_sums(t)  # (iterations, 2)
+    # the spread is |E_0 - E_1|; a split of the update rows on a prediction P leaves
+    # |(E_0 - E_1) - (P_0 - P_1)|
+    d = per_worker[:, 0] - per_worker[:, 1]
     result = {}
     for name, x in features.items():
         a = np.column_stack([x.ravel(), np.ones(x.size)])
         coef, *_ = np.linalg.lstsq(a, t.ravel(), rcond=None)
         pred = (a @ coef).reshape(t.shape)
-        pw = pred.reshape(len(t), workers, -1).sum(-1)
-        dp = pw[:, 0] - pw[:, 1:].mean(1)
+        pw = worker_sums(pred)
+        dp = pw[:, 0] - pw[:, 1]
         result[name] = {
             "r2_per_step": float(1 - ((t - pred) ** 2).mean() / t.var()),
             "residual_spread_ms": 1e3 * float(np.abs(d - dp).mean()),
@@ -144,7 +146,7 @@ def analyse(data: dict, workers: int) -> dict:
         "env_step_ms": 1e3 * float(t.mean()),
         "env_step_std_ms": 1e3 * float(t.std()),
         "worker_env_ms": 1e3 * float(per_worker.mean()),
-        "spread_ms": 1e3 * float(spread(t, workers).mean()),
+        "spread_ms": 1e3 * float(np.abs(d).mean()),
         "planned_controls": [float(data["controls"].mean()), float(data["controls"].std())],
         "physics_steps": [float(data["physics"].mean()), float(data["physics"].std())],
         # an env step's time per physics step (observation and reward included), by object
@@ -160,19 +162,19 @@ def main() -> None:
     ap.add_argument("--objects", default="train-wide", help="the object set (configs/6d-train.toml's)")
     ap.add_argument("--contacts", choices=["hydo", "hacman"], help="default: the model's own")
     ap.add_argument("--envs", type=int, default=8, help="n_envs of the training config")
-    ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=150.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
-    if args.workers < 1 or args.envs % args.workers:
-        raise SystemExit("bench/worker_balance.py: --envs must be a multiple of --workers (≥ 1)")
+    if args.envs < WORKERS or args.envs % WORKERS:
+        raise SystemExit(f"bench/worker_balance.py: --envs must be a positive multiple of {WORKERS}")
     data = play(args)
     if len(data["time"]) < 3:
         raise SystemExit("bench/worker_balance.py: fewer than 3 iterations; raise --seconds")
-    results = analyse(data, args.workers)
+    results = analyse(data)
     results["meta"] = {
-        **{k: getattr(args, k) for k in ("model", "goals", "objects", "envs", "workers", "seconds", "seed")},
+        **{k: getattr(args, k) for k in ("model", "goals", "objects", "envs", "seconds", "seed")},
+        "workers": WORKERS,
         "contacts": data["contacts"],
         "cpus": os.cpu_count(),
         "platform": platform.platform(),
@@ -182,7 +184,7 @@ def main() -> None:
     from rich.table import Table
 
     Console().print(
-        f"{results['iterations']} iterations of {args.envs} envs over {args.workers} workers: env step "
+        f"{results['iterations']} iterations of {args.envs} envs over {WORKERS} workers: env step "
         f"{results['env_step_ms']:.1f} ± {results['env_step_std_ms']:.1f} ms, per worker and iteration "
         f"{results['worker_env_ms']:.1f} ms, spread (the wait at the first sync) {results['spread_ms']:.1f} ms"
     )

@@ -111,7 +111,7 @@ CASES = {
         ),
     ),
     "worker_balance.py": (
-        ["--seconds", "3", "--envs", "2", "--workers", "2"],
+        ["--seconds", "3", "--envs", "2"],
         lambda d: (
             d["iterations"] >= 3
             and d["meta"]["contacts"] == SHIPPED_6D_CONTACTS  # the model's own contacts
